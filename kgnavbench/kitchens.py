@@ -18,7 +18,7 @@ import gzip
 import json
 import math
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 GRID = 0.25
@@ -98,7 +98,7 @@ def check_name(name: str) -> str:
 # Loading (run time)
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_kitchen(name: str) -> Kitchen:
     check_name(name)
     path = KITCHEN_DIR / f"{name}.json.gz"
@@ -193,6 +193,14 @@ def _convex_hull(points: list[tuple[float, float]]) -> list[tuple[float, float]]
     return lower[:-1] + upper[:-1]
 
 
+def _inside_ccw(p: tuple[float, float], hull: list[tuple[float, float]]) -> bool:
+    """Strictly inside a counter-clockwise convex polygon."""
+    edges = zip(hull, hull[1:] + hull[:1], strict=True)
+    return len(hull) > 2 and all(
+        (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]) > 0 for a, b in edges
+    )
+
+
 def _rect(x0: float, z0: float, x1: float, z1: float) -> list[list[float]]:
     return [[_r(x0), _r(z0)], [_r(x1), _r(z0)], [_r(x1), _r(z1)], [_r(x0), _r(z1)]]
 
@@ -206,7 +214,7 @@ def _carve(box: tuple[float, float, float, float], holes: list[tuple[float, floa
         return [box]
     xs = sorted({x0, x1, *[h[0] for h in holes], *[h[2] for h in holes]})
     rects: list[tuple[float, float, float, float]] = []
-    for xa, xb in zip(xs, xs[1:]):
+    for xa, xb in zip(xs, xs[1:], strict=False):
         xm = (xa + xb) / 2
         zs = sorted([(h[1], h[3]) for h in holes if h[0] < xm < h[2]])
         z = z0
@@ -233,8 +241,13 @@ def _footprint(meta: dict, reachable_pts: list[tuple[float, float]]):
     oob = meta.get("objectOrientedBoundingBox")
     if oob and oob.get("cornerPoints"):
         hull = _convex_hull([(p[0], p[2]) for p in oob["cornerPoints"]])
-        # a rotated small object: its own hull; nothing to carve (pickupables stand on furniture)
-        return [[[_r(x), _r(z)] for x, z in hull]]
+        covered = [p for p in reachable_pts if _inside_ccw(p, hull)]
+        if meta["pickupable"] or not covered:
+            # a rotated small object: its own hull; nothing to carve (pickupables stand on furniture)
+            return [[[_r(x), _r(z)] for x, z in hull]]
+        # movable furniture (stool, table) whose 5.0 box covers reachable 2.1.0 grid points: the grid is
+        # authoritative, so its box is carved around those points
+        reachable_pts = covered
     holes = [
         (x - CARVE_HALF, z - CARVE_HALF, x + CARVE_HALF, z + CARVE_HALF)
         for x, z in reachable_pts

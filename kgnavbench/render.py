@@ -314,30 +314,53 @@ def render_view(world: World, pose: Pose | None = None, size: int = 84) -> np.nd
     return images[0]
 
 
+@dataclass(frozen=True)
+class Visibility:
+    visible: tuple[int, ...]  # object indices, sorted
+    pixels: tuple[int, ...]  # instance-buffer pixels of each visible object (VISIBILITY_SIZE)
+    open_target: str | None  # the openable receptacle OpenObject would open here
+
+
+def visibility(world: World, poses: list[Pose], batch: int = 64) -> list[Visibility]:
+    """Visibility per pose for the world's current state: an object is visible when it covers at least
+    MIN_VISIBLE_PIXELS of a VISIBILITY_SIZE instance buffer, its footprint is within 1.5 m of the agent
+    (pymunk point query) and it is not inside a closed receptacle. The open target is the visible
+    openable whose pixels come nearest the image centre."""
+    n_obj = len(world.objects)
+    hidden = [world.is_hidden(i) for i in range(n_obj)]
+    c = (VISIBILITY_SIZE - 1) / 2
+    ys, xs = np.indices((VISIBILITY_SIZE, VISIBILITY_SIZE))
+    centre_dist = ((ys - c) ** 2 + (xs - c) ** 2).reshape(-1)
+    near_cache: dict[tuple[int, int], set[int]] = {}
+    out = []
+    for start in range(0, len(poses), batch):
+        chunk = poses[start : start + batch]
+        _, inst = render_views(world, chunk, VISIBILITY_SIZE)
+        flat = inst.reshape(len(chunk), -1).astype(np.int64)
+        for pose, ids in zip(chunk, flat):
+            counts = np.bincount(ids + 1, minlength=n_obj + 1)[1:]
+            if pose.cell not in near_cache:
+                near_cache[pose.cell] = world.objects_within(pose, VISIBILITY_DISTANCE)
+            visible = sorted(
+                i for i in near_cache[pose.cell] if counts[i] >= MIN_VISIBLE_PIXELS and not hidden[i]
+            )
+            openables = [i for i in visible if world.objects[i].openable]
+            target = None
+            if openables:
+                best = min(openables, key=lambda i: (float(centre_dist[ids == i].min()), i))
+                target = world.objects[best].id
+            out.append(Visibility(tuple(visible), tuple(int(counts[i]) for i in visible), target))
+    return out
+
+
 def visible_objects(world: World, pose: Pose | None = None) -> list[int]:
-    """Indices of objects visible from `pose`: enough instance-buffer pixels, within 1.5 m of the
-    agent (pymunk distance to the footprint), not inside a closed receptacle."""
-    pose = pose or world.pose
-    _, inst = render_views(world, [pose], VISIBILITY_SIZE)
-    counts = np.bincount(inst[0].reshape(-1).astype(np.int64) + 1, minlength=len(world.objects) + 1)[1:]
-    near = world.objects_within(pose, VISIBILITY_DISTANCE)
-    return sorted(
-        i for i in near if counts[i] >= MIN_VISIBLE_PIXELS and not world.is_hidden(i)
-    )
+    """Indices of the objects visible from `pose` (default: the agent's), see `visibility`."""
+    return list(visibility(world, [pose or world.pose])[0].visible)
 
 
 def open_target(world: World, pose: Pose | None = None) -> str | None:
     """The visible openable receptacle nearest the image centre (what OpenObject opens), or None."""
-    pose = pose or world.pose
-    _, inst = render_views(world, [pose], VISIBILITY_SIZE)
-    candidates = [i for i in visible_objects(world, pose) if world.objects[i].openable]
-    if not candidates:
-        return None
-    ys, xs = np.indices(inst[0].shape)
-    c = (VISIBILITY_SIZE - 1) / 2
-    dist2 = (ys - c) ** 2 + (xs - c) ** 2
-    best = min(candidates, key=lambda i: (float(dist2[inst[0] == i].min()), i))
-    return world.objects[best].id
+    return visibility(world, [pose or world.pose])[0].open_target
 
 
 def act(world: World, action: str):
@@ -398,9 +421,12 @@ def top_down_map(
     for k, p in enumerate(poses if poses is not None else [world.pose]):
         fx, fz = heading_vector(p.heading)
         rx, rz = fz, -fx
-        r = 0.15
-        tri = [(p.x + fx * r, p.z + fz * r), (p.x - fx * r * 0.7 + rx * r * 0.7, p.z - fz * r * 0.7 + rz * r * 0.7),
-               (p.x - fx * r * 0.7 - rx * r * 0.7, p.z - fz * r * 0.7 - rz * r * 0.7)]
+        r, b = 0.15, 0.105  # nose and back corners of the agent's triangle, metres
+        tri = [
+            (p.x + fx * r, p.z + fz * r),
+            (p.x - fx * b + rx * b, p.z - fz * b + rz * b),
+            (p.x - fx * b - rx * b, p.z - fz * b - rz * b),
+        ]
         colour = ((30, 120, 255), (255, 140, 0), (0, 200, 120), (220, 40, 40))[k % 4]
         cv2.fillConvexPoly(img, np.array([px(*q) for q in tri], np.int32), colour, cv2.LINE_AA)
     return img

@@ -224,7 +224,8 @@ class World:
         x0, z0, x1, z1 = self.kitchen.room
         corners = [(x0, z0), (x1, z0), (x1, z1), (x0, z1)]
         for a, b in zip(corners, corners[1:] + corners[:1]):
-            self._add(pymunk.Segment(static, a, b, 0.0), WALL, ShapeInfo(-1, (0.0, self.kitchen.room_height), "wall"))
+            wall = ShapeInfo(-1, (0.0, self.kitchen.room_height), "wall")
+            self._add(pymunk.Segment(static, a, b, 0.0), WALL, wall)
         g = self.kitchen.grid
         for ix, iz in self.reachable:
             for dx, dz in ((1, 0), (-1, 0), (0, 1), (0, -1)):
@@ -404,6 +405,8 @@ def parse_pose(text: str, kitchen: Kitchen) -> Pose:
             raise ValueError
     except ValueError:
         raise WorldError(f"bad pose {text!r}: expected x,z[,heading[,pitch]] like 0.25,-1.5,90,0") from None
+    if not all(math.isfinite(v) for v in parts) or any(v != int(v) for v in parts[2:]):
+        raise WorldError(f"bad pose {text!r}: x and z must be finite, heading and pitch whole degrees")
     g = kitchen.grid
     cell = (round(parts[0] / g), round(parts[1] / g))
     if abs(cell[0] * g - parts[0]) > 1e-6 or abs(cell[1] * g - parts[1]) > 1e-6:

@@ -1,0 +1,292 @@
+"""The `kgnavbench` command line.
+
+    kgnavbench kitchens [NAME] [--json]
+    kgnavbench walk --kitchen NAME --actions A,B,...|random:N [--start x,z,heading,pitch]
+                    [--size N] [--out DIR] [--json] [--seed S] [--placement-seed S]
+
+Bad input (an unknown kitchen or action, an unreachable start, a malformed pose, an out-of-range size,
+an unusable output folder) prints one line ``kgnavbench: error: ...`` to stderr and exits with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import re
+import sys
+from pathlib import Path
+
+from .kitchens import KITCHEN_NAMES, Kitchen, KitchenError, kitchen_summary, load_kitchen
+from .world import ACTIONS, Pose, World, WorldError, parse_action, parse_pose
+
+PROG = "kgnavbench"
+MIN_SIZE, MAX_SIZE = 16, 1024
+MAP_MIN_SIZE = 300
+
+
+class UsageError(Exception):
+    """Bad command-line input: reported as one `kgnavbench: error: ...` line, exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that raises instead of printing usage and exiting, so `main` reports every error alike."""
+
+    def error(self, message: str):
+        raise UsageError(f"{message} (see `{self.prog} --help`)")
+
+
+# ----------------------------------------------------------------------------------------------------
+# kitchens
+
+
+def _table(headers: list[str], rows: list[list], right: set[int]) -> str:
+    cells = [headers] + [[str(v) for v in row] for row in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    lines = []
+    for r in cells:
+        parts = [r[i].rjust(widths[i]) if i in right else r[i].ljust(widths[i]) for i in range(len(r))]
+        lines.append("  ".join(parts).rstrip())
+    return "\n".join(lines)
+
+
+def cmd_kitchens(args: argparse.Namespace) -> int:
+    if args.name is None:
+        rows = [kitchen_summary(load_kitchen(name)) for name in KITCHEN_NAMES]
+        if args.json:
+            print(json.dumps(rows, indent=1))
+            return 0
+        keys = ["name", "reachable_cells", "objects", "hidden_objects", "openable_receptacles"]
+        headers = ["kitchen", "reachable cells", "objects", "hidden objects", "openable receptacles"]
+        print(_table(headers, [[r[k] for k in keys] for r in rows], right={1, 2, 3, 4}))
+        return 0
+    k = load_kitchen(args.name)
+    rows = [{"id": o.id, "type": o.type, "parent": o.parent, "hidden": o.hidden} for o in k.objects]
+    if args.json:
+        print(json.dumps(rows, indent=1))
+        return 0
+    table = [[r["id"], r["type"], r["parent"] or "-", "yes" if r["hidden"] else "no"] for r in rows]
+    print(_table(["id", "type", "parent", "hidden"], table, right=set()))
+    s = kitchen_summary(k)
+    print(
+        f"{k.name}: {s['objects']} objects, {s['hidden_objects']} hidden, "
+        f"{s['openable_receptacles']} openable receptacles, {s['reachable_cells']} reachable cells"
+    )
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------
+# walk
+
+
+def parse_actions(text: str, rng: random.Random) -> list[str]:
+    """Comma-separated action names and/or `random:N` items (N actions drawn with `rng`).
+
+    Every item is checked before anything runs, so a typo fails before the first step."""
+    actions: list[str] = []
+    items = [item.strip() for item in text.split(",")]
+    if not text.strip() or any(not item for item in items):
+        raise UsageError(
+            f"bad --actions {text!r}: expected comma-separated actions like MoveAhead,RotateLeft or random:N"
+        )
+    for item in items:
+        if item.startswith("random:"):
+            count = item[len("random:") :]
+            if not re.fullmatch(r"[0-9]+", count):
+                raise UsageError(f"bad --actions item {item!r}: random:N needs a whole number N >= 0")
+            actions.extend(rng.choice(ACTIONS) for _ in range(int(count)))
+        else:
+            actions.append(parse_action(item))
+    return actions
+
+
+def parse_start(text: str, kitchen: Kitchen) -> Pose:
+    """`world.parse_pose`, plus the checks it lacks: finite numbers, whole-degree heading and pitch."""
+    try:
+        parts = [float(v) for v in text.split(",")]
+    except ValueError:
+        parts = []
+    if parts and not all(math.isfinite(v) for v in parts):
+        raise UsageError(f"bad pose {text!r}: x, z, heading and pitch must be finite numbers")
+    if any(v != int(v) for v in parts[2:]):
+        raise UsageError(f"bad pose {text!r}: heading and pitch must be whole degrees")
+    return parse_pose(text, kitchen)
+
+
+def _size(text: str) -> int:
+    try:
+        size = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not MIN_SIZE <= size <= MAX_SIZE:
+        raise argparse.ArgumentTypeError(f"{size} is out of range ({MIN_SIZE} .. {MAX_SIZE} pixels)")
+    return size
+
+
+def _pose_dict(pose: Pose) -> dict:
+    return {"x": pose.x, "z": pose.z, "heading": pose.heading, "pitch": pose.pitch}
+
+
+def cmd_walk(args: argparse.Namespace) -> int:
+    from . import render  # OpenCV and numpy start here; `kgnavbench kitchens` does without them
+
+    # --- check every input before the first step
+    kitchen = load_kitchen(args.kitchen)
+    actions = parse_actions(args.actions, random.Random(args.seed))
+    world = World(kitchen, seed=args.placement_seed)
+    if args.start is not None:
+        world.teleport(parse_start(args.start, kitchen))
+    out: Path | None = args.out
+    if out is not None:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise UsageError(f"cannot create output folder {str(out)!r}: {e.strerror or e}") from None
+        if not os.access(out, os.W_OK):
+            raise UsageError(f"output folder {str(out)!r} is not writable")
+
+    open_width = max([len("open receptacle")] + [len(o.id) for o in world.objects if o.openable])
+
+    def report(step: int, action: str | None, success: bool) -> None:
+        visible = [world.objects[i].id for i in render.visible_objects(world)]
+        if args.json:
+            record = {
+                "step": step,
+                "action": action,
+                "success": success,
+                "pose": _pose_dict(world.pose),
+                "open_receptacle": world.open_receptacle,
+                "visible": visible,
+            }
+            print(json.dumps(record), flush=True)
+        else:
+            print(
+                f"{step:4d}  {action or '(start)':<11}  {'ok' if success else 'FAILED':<6}  "
+                f"{str(world.pose):<22}  {world.open_receptacle or '-':<{open_width}}  "
+                f"{' '.join(visible) or '-'}",
+                flush=True,
+            )
+        if out is not None:
+            render.save_rgb(out / f"view_{step:03d}.png", render.render_view(world, world.pose, args.size))
+
+    if not args.json:
+        print(
+            f"{'step':>4}  {'action':<11}  {'result':<6}  {'pose x,z,heading,pitch':<22}  "
+            f"{'open receptacle':<{open_width}}  visible"
+        )
+    path = [world.pose]
+    failed = 0
+    report(0, None, True)
+    for step, action in enumerate(actions, start=1):
+        result = render.act(world, action)
+        failed += not result.success
+        path.append(world.pose)
+        report(step, action, result.success)
+
+    where = "no files written (use --out DIR to save views and a map)"
+    if out is not None:
+        size = max(args.size, MAP_MIN_SIZE)
+        render.save_rgb(out / "map.png", render.top_down_map(world, size=size, poses=[world.pose], path=path))
+        where = f"{len(actions) + 1} views and map.png written to {out}"
+    summary = f"{kitchen.name}: {len(actions)} steps, {failed} failed; {where}"
+    # with --json, stdout stays one JSON object per line
+    print(summary, file=sys.stderr if args.json else sys.stdout)
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------
+# parser and entry point
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog=PROG, description="Target-driven visual navigation benchmark in the 30 iTHOR kitchens."
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    p = sub.add_parser(
+        "kitchens",
+        help="list the kitchens, or one kitchen's objects",
+        description="Without NAME: the 30 kitchens with their reachable cells, objects, hidden objects and "
+        "openable receptacles. With NAME: that kitchen's objects (id, type, parent receptacle, hidden).",
+    )
+    p.add_argument("name", nargs="?", metavar="NAME", help="a kitchen, FloorPlan1 .. FloorPlan30")
+    p.add_argument("--json", action="store_true", help="print JSON (a list of objects) instead of a table")
+    p.set_defaults(func=cmd_kitchens)
+
+    p = sub.add_parser(
+        "walk",
+        help="walk the agent through a kitchen, printing what it sees",
+        description="Step the agent through a kitchen and print, per step, the action, whether it "
+        "succeeded, the pose, the open receptacle and the visible objects. Stop is stepped like any "
+        "other action (the walk goes on).",
+    )
+    p.add_argument("--kitchen", required=True, metavar="NAME", help="FloorPlan1 .. FloorPlan30")
+    p.add_argument(
+        "--actions",
+        required=True,
+        metavar="A,B,...",
+        help=f"comma-separated actions ({', '.join(ACTIONS)}) and/or random:N for N random actions",
+    )
+    p.add_argument(
+        "--start",
+        metavar="X,Z,HEADING,PITCH",
+        help="start pose in metres and degrees (default: the world's initial pose)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the random actions (default 0)")
+    p.add_argument(
+        "--placement-seed",
+        type=int,
+        default=None,
+        metavar="S",
+        help="re-place movable objects with one of the kitchen's real placements chosen by S "
+        "(default: the AI2-THOR start scene)",
+    )
+    p.add_argument(
+        "--size", type=_size, default=300, help=f"view size in pixels, {MIN_SIZE}..{MAX_SIZE} (default 300)"
+    )
+    p.add_argument("--out", type=Path, metavar="DIR", help="write view_NNN.png per step and map.png here")
+    p.add_argument("--json", action="store_true", help="print one JSON object per step instead of a table")
+    p.set_defaults(func=cmd_walk)
+    return parser
+
+
+_NEGATIVE_VALUE = re.compile(r"-[0-9.]")
+
+
+def _join_negative_values(argv: list[str]) -> list[str]:
+    """argparse reads `--start -1.0,0.5,270,30` as two options; glue such a value to its option."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        if argv[i] == "--start" and i + 1 < len(argv) and _NEGATIVE_VALUE.match(argv[i + 1]):
+            out.append(f"--start={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = build_parser().parse_args(_join_negative_values(argv))
+        return args.func(args)
+    except (UsageError, KitchenError, WorldError) as e:
+        print(f"{PROG}: error: {e}", file=sys.stderr)
+        return 2
+    except SystemExit as e:  # --help
+        return e.code if isinstance(e.code, int) else 0
+    except BrokenPipeError:  # `kgnavbench kitchens | head`: stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except OSError as e:  # a view or map could not be written
+        print(f"{PROG}: error: {e}", file=sys.stderr)
+        return 1
+
+
+__all__ = ["build_parser", "main", "parse_actions"]
