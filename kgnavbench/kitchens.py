@@ -113,6 +113,8 @@ def load_kitchen(name: str) -> Kitchen:
 
 
 def kitchen_from_record(record: dict) -> Kitchen:
+    if not isinstance(record, dict):
+        raise ValueError(f"a {type(record).__name__}, not a kitchen record")
     if record.get("format") != FORMAT_VERSION:
         raise ValueError(f"format {record.get('format')!r}, expected {FORMAT_VERSION}")
     objects = tuple(
@@ -376,6 +378,10 @@ def compile_kitchen(name: str, thor_data: Path | str = DEFAULT_THOR_DATA) -> dic
 
     def parent_of(m: dict) -> str | None:
         parents = [p for p in (m.get("parentReceptacles") or []) if p in ids]
+        if not m["pickupable"]:
+            # fixtures stand on furniture, never in a pickupable or behind a door: AI2-THOR also lists
+            # overlapping boxes (a Fridge "in" a Cabinet, a Cabinet "in" the Mug it holds)
+            parents = [p for p in parents if not meta[p]["pickupable"] and not meta[p]["openable"]]
         return parents[0] if parents else None
 
     def hidden(m: dict) -> bool:
@@ -425,7 +431,8 @@ def compile_kitchen(name: str, thor_data: Path | str = DEFAULT_THOR_DATA) -> dic
         "grid": GRID,
         "reachable": [list(c) for c in reachable],
         "room": [_r(v) for v in room],
-        "room_height": ROOM_HEIGHT,
+        # a few windows and upper cabinets reach above 2.6 m: the ceiling sits above the tallest object
+        "room_height": _r(max([ROOM_HEIGHT] + [o["y"][1] + 0.05 for o in objects])),
         "objects": objects,
         "placements": _placements(name, objects, thor),
     }

@@ -251,8 +251,14 @@ def render_views(
     # row = H/2 + f ((eye - y) / t - tan(pitch)), so straight edges stay straight and verticals vertical.
     shift = np.tan(pitch)[hit_pose]
     inv_in, inv_out = 1.0 / t_in, 1.0 / t_out
-    corners = np.stack([(EYE_HEIGHT - y_lo) * inv_in, (EYE_HEIGHT - y_hi) * inv_in,
-                        (EYE_HEIGHT - y_lo) * inv_out, (EYE_HEIGHT - y_hi) * inv_out])
+    corners = np.stack(
+        [
+            (EYE_HEIGHT - y_lo) * inv_in,
+            (EYE_HEIGHT - y_hi) * inv_in,
+            (EYE_HEIGHT - y_lo) * inv_out,
+            (EYE_HEIGHT - y_hi) * inv_out,
+        ]
+    )
     corners = H / 2 - 0.5 + f * (corners - shift)
     r_lo = np.clip(np.ceil(corners.min(0)), 0, H).astype(np.int64)
     r_hi = np.clip(np.floor(corners.max(0)), -1, H - 1).astype(np.int64)
@@ -397,8 +403,13 @@ def top_down_map(
     cv2.rectangle(img, px(x0, z1), px(x1, z0), WALL_COLOURS[0], 2)
     g = world.kitchen.grid
     for x, z in world.kitchen.reachable_points:
-        cv2.rectangle(img, px(x - g / 2 + 0.01, z + g / 2 - 0.01), px(x + g / 2 - 0.01, z - g / 2 + 0.01),
-                      FLOOR_COLOURS[1], -1)
+        cv2.rectangle(
+            img,
+            px(x - g / 2 + 0.01, z + g / 2 - 0.01),
+            px(x + g / 2 - 0.01, z - g / 2 + 0.01),
+            FLOOR_COLOURS[1],
+            -1,
+        )
     order = sorted(range(len(world.objects)), key=lambda i: world.objects[i].y_range[1])
     for i in order:
         o = world.objects[i]
@@ -413,8 +424,14 @@ def top_down_map(
             cv2.polylines(img, [pts], True, edge, 1, cv2.LINE_AA)
     for shape, info in world.solid_shapes():
         if info.kind in ("shell", "door"):
-            cv2.line(img, px(shape.a.x, shape.a.y), px(shape.b.x, shape.b.y),
-                     (255, 255, 255) if info.kind == "door" else (160, 160, 160), 2, cv2.LINE_AA)
+            cv2.line(
+                img,
+                px(shape.a.x, shape.a.y),
+                px(shape.b.x, shape.b.y),
+                (255, 255, 255) if info.kind == "door" else (160, 160, 160),
+                2,
+                cv2.LINE_AA,
+            )
     if path:
         pts = np.array([px(p.x, p.z) for p in path], np.int32)
         cv2.polylines(img, [pts], False, (255, 80, 200), 2, cv2.LINE_AA)

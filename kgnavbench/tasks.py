@@ -67,8 +67,9 @@ class StateGraph:
         return Pose(self.cells[self.cell[s]], int(self.heading[s]), int(self.pitch[s]))
 
     def state_of(self, pose: Pose, opened: int = -1) -> int:
-        closed = self._closed_index(self.cells.index(pose.cell), HEADINGS.index(pose.heading),
-                                    PITCHES.index(pose.pitch))
+        closed = self._closed_index(
+            self.cells.index(pose.cell), HEADINGS.index(pose.heading), PITCHES.index(pose.pitch)
+        )
         if opened < 0:
             return closed
         s = int(self.next[closed, OPEN])

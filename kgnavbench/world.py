@@ -259,9 +259,7 @@ class World:
     # -- pose and moves -------------------------------------------------------------------------------
     def check_pose(self, pose: Pose) -> Pose:
         if pose.cell not in self.reachable:
-            raise WorldError(
-                f"({pose.x:.2f}, {pose.z:.2f}) is not a reachable cell of {self.kitchen.name}"
-            )
+            raise WorldError(f"({pose.x:.2f}, {pose.z:.2f}) is not a reachable cell of {self.kitchen.name}")
         if pose.heading not in HEADINGS:
             raise WorldError(f"heading {pose.heading} is not one of {HEADINGS}")
         if pose.pitch not in PITCHES:
