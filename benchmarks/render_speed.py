@@ -35,8 +35,10 @@ def main() -> None:
                 poses = [Pose(c, h, p) for c in world.kitchen.reachable for h in HEADINGS for p in PITCHES]
                 rates.append(views_per_second(world, poses, size, batch, args.seconds))
             mean = sum(rates) / len(rates)
-            print(f"render {size}x{size} batch {batch:>2}: {mean:8.1f} views/s "
-                  f"(min {min(rates):.1f}, max {max(rates):.1f} over {len(rates)} kitchens)")
+            print(
+                f"render {size}x{size} batch {batch:>2}: {mean:8.1f} views/s "
+                f"(min {min(rates):.1f}, max {max(rates):.1f} over {len(rates)} kitchens)"
+            )
 
 
 if __name__ == "__main__":

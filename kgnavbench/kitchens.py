@@ -72,10 +72,7 @@ class Kitchen:
     placements: tuple[tuple[tuple[int, float, float, float, float], ...], ...]
 
     def object(self, object_id: str) -> KitchenObject:
-        for obj in self.objects:
-            if obj.id == object_id:
-                return obj
-        raise KitchenError(f"kitchen {self.name} has no object {object_id!r}")
+        return self.objects[self.index(object_id)]
 
     def index(self, object_id: str) -> int:
         for i, obj in enumerate(self.objects):

@@ -371,9 +371,9 @@ def open_target(world: World, pose: Pose | None = None) -> str | None:
 
 def act(world: World, action: str):
     """One step of the world with OpenObject resolved from the current view."""
-    target = open_target(world) if action == "OpenObject" else None
-    if action == "OpenObject" and world.open_receptacle is not None:
-        # the open receptacle closes first, so choose among closed ones as they will be seen
+    target = None
+    if action == "OpenObject":
+        # an open receptacle closes first, so the target is chosen from the view as it will be then
         world.close()
         target = open_target(world)
     return world.step(action, target)

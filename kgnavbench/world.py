@@ -241,10 +241,7 @@ class World:
 
     # -- lookup ---------------------------------------------------------------------------------------
     def object(self, object_id: str) -> KitchenObject:
-        for o in self.objects:
-            if o.id == object_id:
-                return o
-        raise WorldError(f"kitchen {self.kitchen.name} has no object {object_id!r}")
+        return self.objects[self.index(object_id)]
 
     def index(self, object_id: str) -> int:
         for i, o in enumerate(self.objects):
