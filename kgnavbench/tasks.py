@@ -1,30 +1,58 @@
-"""Stage 4 — tasks: the discrete state graph of a kitchen, targets, destinations and shortest paths.
+"""Stage 4 — tasks: the discrete state graph of a kitchen, targets, splits, fixed episodes, shortest
+paths and expert trajectories.
 
-A state is (cell, heading, pitch, open receptacle or none) — DESIGN.md's finite set. Closed states
-are every reachable cell x 4 headings x 4 pitches. OpenObject in a closed state opens the receptacle
-that the view there picks (nearest the image centre), so each closed state has at most one open twin;
-an open state behaves like its closed twin for every action but Stop (which keeps it open) and
-OpenObject (which closes and reopens the same receptacle).
+State graph. A state is (cell, heading, pitch, open receptacle or none) — DESIGN.md's finite set.
+Closed states are every reachable cell x 4 headings x 4 pitches, numbered ((cell * 4 + heading) * 4 +
+pitch). OpenObject in a closed state opens the receptacle that the view there picks (nearest the image
+centre), so each closed state has at most one open twin, numbered after all closed states. An open
+state behaves like its closed twin for every action but Stop (which keeps it open) and OpenObject
+(which closes and reopens the same receptacle): the auto-close rule. Transitions come from stepping
+the world itself; each state also stores what is visible there and its 84x84 view, so an environment
+step is an array lookup. Built once per kitchen and cached on disk (`cache_dir()`).
 
-Targets (per kitchen, start scene):
-  * static: an object of an eligible type (pickupable, or one of COMMON_ITEMS) that is visible from some
+Targets (per kitchen, AI2-THOR start scene):
+  * static: an object of an eligible type — pickupable, or one of COMMON_ITEMS — visible from some
     closed state;
   * actionable: an object hidden inside a closed openable receptacle at the start, visible from some
     open state (its receptacle open).
 Goal states of a target are the states where it is visible; its destination is the goal state nearest
 the object (ties: more pixels, then the lowest state index), and its target image is the view there.
 
-Shortest paths are multi-source BFS over the reversed transition table, one vectorised frontier
-expansion per level (no Python loop per node).
+Splits (rules in code here, written down in the README):
+  * kitchens: the 20 with the most actionable targets train (ties: the lower FloorPlan number); the
+    other ten, in the same order, alternate validation and test;
+  * targets: in every kitchen and for each kind, ceil(n / 4) targets are unseen, chosen by a shuffle
+    seeded with "<kitchen>/<kind>"; the rest are seen (training targets).
+Fixed episodes: 100 per target, starting in a closed state at pitch 0 at least 10 actions from the
+target's destination (the place its image shows), drawn with a generator seeded by
+"<kitchen>/<object id>". They are saved in `kgnavbench/data/tasks.json.gz` (committed; `make tasks`
+rebuilds it) and are the same for every method.
+
+Shortest paths: multi-source BFS over the reversed transition table, one vectorised frontier
+expansion per level (no Python loop per node). Experts: the BFS-optimal one (first action in the
+paper's order that lowers the distance) and the paper's (walk back from the destination with
+MoveBack / MoveLeft / RotateRight by priority, then reverse).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import gzip
+import hashlib
+import json
+import math
+import os
+import random
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
 
 import numpy as np
 
-from .render import Visibility, visibility
+from .kitchens import DATA_DIR, KITCHEN_DIR, KITCHEN_NAMES, check_name, object_types
+from .render import Visibility, render_views, visibility
 from .world import ACTIONS, HEADINGS, PITCHES, Pose, World
 
 # Household items that count as static targets although they cannot be picked up.
@@ -42,11 +70,32 @@ COMMON_ITEMS = (
 )
 OPEN = ACTIONS.index("OpenObject")
 STOP = ACTIONS.index("Stop")
+MOVES = tuple(ACTIONS.index(a) for a in ("MoveAhead", "MoveBack", "MoveRight", "MoveLeft"))
+VIEW_SIZE = 84
+GRAPH_VERSION = 2  # bump when build_state_graph changes what it produces
+N_TRAIN_KITCHENS, N_VAL_KITCHENS = 20, 5
+UNSEEN_TARGET_FRACTION = 0.25
+EPISODES_PER_TARGET = 100
+MIN_START_DISTANCE = 10
+START_PITCH = 0
+TASKS_FILE = DATA_DIR / "tasks.json.gz"
+TASKS_FORMAT = 1
+# The paper's walk-back expert: from the destination try these in order, then reverse the walk.
+WALK_BACK_PRIORITY = ("MoveBack", "MoveLeft", "RotateRight")
+REVERSE = {"MoveBack": "MoveAhead", "MoveLeft": "MoveRight", "RotateRight": "RotateLeft"}
+
+
+class TaskError(ValueError):
+    """Bad task input: unknown target, stale or corrupt task file, unreachable destination."""
+
+
+# ------------------------------------------------------------------------------------------------
+# The state graph
 
 
 @dataclass
 class StateGraph:
-    """Every state of one kitchen (start scene) with its transitions and what is visible there."""
+    """Every state of one kitchen (start scene) with its transitions, what is visible and its view."""
 
     kitchen: str
     world: World
@@ -58,10 +107,24 @@ class StateGraph:
     next: np.ndarray  # (S, 10) next state per action (ACTIONS order)
     ok: np.ndarray  # (S, 10) whether the action succeeds (False: a collision or a failed action)
     visible: list[Visibility]  # (S,)
+    views: np.ndarray  # (S, V, V, 3) uint8 RGB, the view of every state
+    object_vectors: np.ndarray = field(init=False)  # (S, 125) uint8: which object types are visible
+
+    def __post_init__(self) -> None:
+        types = {t: i for i, t in enumerate(object_types())}
+        vectors = np.zeros((self.n_states, len(types)), np.uint8)
+        type_index = [types[o.type] for o in self.world.objects]
+        for s, v in enumerate(self.visible):
+            vectors[s, [type_index[i] for i in v.visible]] = 1
+        self.object_vectors = vectors
 
     @property
     def n_states(self) -> int:
         return len(self.cell)
+
+    @property
+    def n_closed(self) -> int:
+        return len(self.cells) * len(HEADINGS) * len(PITCHES)
 
     def pose(self, s: int) -> Pose:
         return Pose(self.cells[self.cell[s]], int(self.heading[s]), int(self.pitch[s]))
@@ -74,7 +137,7 @@ class StateGraph:
             return closed
         s = int(self.next[closed, OPEN])
         if self.opened[s] != opened:
-            raise ValueError(f"OpenObject at {pose} does not open object {opened}")
+            raise TaskError(f"OpenObject at {pose} does not open object {opened}")
         return s
 
     @staticmethod
@@ -85,13 +148,14 @@ class StateGraph:
         return np.array([object_index in v.visible for v in self.visible])
 
 
-def build_state_graph(world: World) -> StateGraph:
-    """Enumerate the states, step the world for every (state, action) and record visibility."""
+def build_state_graph(world: World, view_size: int = VIEW_SIZE) -> StateGraph:
+    """Enumerate the states, step the world for every (state, action), record visibility and views."""
     world.close()
     cells = list(world.kitchen.reachable)
     closed = [Pose(c, h, p) for c in cells for h in HEADINGS for p in PITCHES]
     n_closed = len(closed)
     vis = visibility(world, closed)
+    views = [_render(world, closed, view_size)]
     index = {pose: i for i, pose in enumerate(closed)}
 
     # open twins: one per closed state whose view has an openable receptacle to open
@@ -102,14 +166,18 @@ def build_state_graph(world: World) -> StateGraph:
             twin[s] = n_closed + len(open_states)
             open_states.append((s, world.index(v.open_target)))
     open_vis: list[Visibility | None] = [None] * len(open_states)
+    open_views = np.zeros((len(open_states), view_size, view_size, 3), np.uint8)
     by_receptacle: dict[int, list[int]] = {}
     for k, (_, r) in enumerate(open_states):
         by_receptacle.setdefault(r, []).append(k)
     for r, ks in by_receptacle.items():
         world.open(world.objects[r].id)
-        for k, v in zip(ks, visibility(world, [closed[open_states[k][0]] for k in ks])):
+        poses = [closed[open_states[k][0]] for k in ks]
+        for k, v in zip(ks, visibility(world, poses)):
             open_vis[k] = v
+        open_views[ks] = _render(world, poses, view_size)
         world.close()
+    views.append(open_views)
 
     n = n_closed + len(open_states)
     nxt = np.zeros((n, len(ACTIONS)), np.int64)
@@ -144,7 +212,153 @@ def build_state_graph(world: World) -> StateGraph:
         next=nxt,
         ok=ok,
         visible=list(vis) + open_vis,
+        views=np.concatenate(views),
     )
+
+
+def _render(world: World, poses: list[Pose], size: int, batch: int = 64) -> np.ndarray:
+    out = np.zeros((len(poses), size, size, 3), np.uint8)
+    for start in range(0, len(poses), batch):
+        out[start : start + batch] = render_views(world, poses[start : start + batch], size)[0]
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# The on-disk cache of state graphs (derived data: a corrupt or stale file is rebuilt, never trusted)
+
+
+def cache_dir() -> Path:
+    """$KGNAVBENCH_CACHE, else $XDG_CACHE_HOME/kgnavbench, else ~/.cache/kgnavbench."""
+    if os.environ.get("KGNAVBENCH_CACHE"):
+        return Path(os.environ["KGNAVBENCH_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "kgnavbench"
+
+
+@cache
+def graph_fingerprint(kitchen: str) -> str:
+    """Changes whenever the kitchen file or the code that makes states, transitions and views does."""
+    h = hashlib.sha256(f"graph-{GRAPH_VERSION}".encode())
+    h.update((KITCHEN_DIR / f"{kitchen}.json.gz").read_bytes())
+    for stage in ("world.py", "render.py"):
+        h.update((Path(__file__).parent / stage).read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _cache_paths(kitchen: str, view_size: int, root: Path) -> tuple[Path, Path]:
+    stem = root / f"{kitchen}-{graph_fingerprint(kitchen)}"
+    return stem.with_suffix(".graph.npz"), Path(f"{stem}.views{view_size}.npy")
+
+
+def _atomic_save(path: Path, save) -> None:
+    """Write through a unique temporary file and rename, so readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            save(f)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_graph(graph: StateGraph, root: Path) -> None:
+    graph_path, views_path = _cache_paths(graph.kitchen, graph.views.shape[1], root)
+    vis_ptr = np.cumsum([0] + [len(v.visible) for v in graph.visible])
+    open_target = [graph.world.index(v.open_target) if v.open_target else -1 for v in graph.visible]
+    arrays = dict(
+        cells=np.array(graph.cells, np.int64),
+        cell=graph.cell,
+        heading=graph.heading,
+        pitch=graph.pitch,
+        opened=graph.opened,
+        next=graph.next,
+        ok=graph.ok,
+        vis_ptr=vis_ptr,
+        vis_obj=np.array([i for v in graph.visible for i in v.visible], np.int64),
+        vis_pixels=np.array([p for v in graph.visible for p in v.pixels], np.int64),
+        open_target=np.array(open_target, np.int64),
+    )
+    _atomic_save(views_path, lambda f: np.save(f, graph.views))
+    _atomic_save(graph_path, lambda f: np.savez(f, **arrays))
+
+
+def load_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = None) -> StateGraph | None:
+    """The cached graph, or None when there is none (or it is unreadable: then it gets rebuilt)."""
+    graph_path, views_path = _cache_paths(kitchen, view_size, root or cache_dir())
+    if not (graph_path.exists() and views_path.exists()):
+        return None
+    try:
+        with np.load(graph_path) as z:
+            a = {k: z[k] for k in z.files}
+        views = np.load(views_path, mmap_mode="r")
+        world = World(kitchen)
+        ptr = a["vis_ptr"]
+        visible = [
+            Visibility(
+                tuple(int(i) for i in a["vis_obj"][ptr[s] : ptr[s + 1]]),
+                tuple(int(p) for p in a["vis_pixels"][ptr[s] : ptr[s + 1]]),
+                world.objects[t].id if t >= 0 else None,
+            )
+            for s, t in enumerate(a["open_target"])
+        ]
+        graph = StateGraph(
+            kitchen=kitchen,
+            world=world,
+            cells=[(int(x), int(z)) for x, z in a["cells"]],
+            cell=a["cell"],
+            heading=a["heading"],
+            pitch=a["pitch"],
+            opened=a["opened"],
+            next=a["next"],
+            ok=a["ok"],
+            visible=visible,
+            views=views,
+        )
+        if views.shape != (graph.n_states, view_size, view_size, 3) or graph.next.shape[0] != graph.n_states:
+            raise ValueError(f"views {views.shape} do not match {graph.n_states} states")
+        return graph
+    except Exception as e:  # noqa: BLE001 - any unreadable cache file is rebuilt, not trusted
+        print(f"kgnavbench: cached state graph of {kitchen} is unreadable ({e}); rebuilding it")
+        return None
+
+
+def state_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = None) -> StateGraph:
+    """The state graph of a kitchen's start scene, from the cache or built (and cached) now."""
+    check_name(kitchen)
+    root = root or cache_dir()
+    graph = load_graph(kitchen, view_size, root)
+    if graph is None:
+        graph = build_state_graph(World(kitchen), view_size)
+        save_graph(graph, root)
+    return graph
+
+
+def _build_one(job: tuple[str, int, str]) -> tuple[str, float, int]:
+    kitchen, view_size, root = job
+    start = time.perf_counter()
+    graph = state_graph(kitchen, view_size, Path(root))
+    return kitchen, time.perf_counter() - start, graph.n_states
+
+
+def build_all(
+    kitchens=KITCHEN_NAMES, view_size: int = VIEW_SIZE, root: Path | None = None, workers: int | None = None
+):
+    """Make sure every kitchen's graph is cached; one process per core. Yields (kitchen, s, states)."""
+    root = root or cache_dir()
+    jobs = [(k, view_size, str(root)) for k in kitchens]
+    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    if workers <= 1:
+        yield from map(_build_one, jobs)
+        return
+    with ProcessPoolExecutor(workers) as pool:
+        yield from pool.map(_build_one, jobs)
+
+
+# ------------------------------------------------------------------------------------------------
+# Shortest paths and experts
 
 
 def bfs_distances(next_state: np.ndarray, goal: np.ndarray) -> np.ndarray:
@@ -159,6 +373,57 @@ def bfs_distances(next_state: np.ndarray, goal: np.ndarray) -> np.ndarray:
         frontier = frontier[next_state].any(axis=1) & (dist < 0)
         dist[frontier] = level
     return dist
+
+
+def goal_mask(n_states: int, goal_states) -> np.ndarray:
+    mask = np.zeros(n_states, bool)
+    mask[list(goal_states)] = True
+    return mask
+
+
+def expert_actions(next_state: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """The BFS-optimal action per state: Stop on a goal state, else the first action (paper order) whose
+    next state is one step nearer; -1 where the goal cannot be reached."""
+    nearer = dist[next_state] == (dist - 1)[:, None]
+    nearer[dist <= 0] = False
+    best = np.where(nearer.any(1), nearer.argmax(1), -1)
+    best[dist == 0] = STOP
+    return best
+
+
+def shortest_trajectory(next_state: np.ndarray, dist: np.ndarray, start: int) -> list[int]:
+    """BFS-optimal actions from start to the goal, ending with Stop."""
+    if dist[start] < 0:
+        raise TaskError(f"state {start} cannot reach the goal")
+    best = expert_actions(next_state, dist)
+    s, actions = start, []
+    while dist[s] > 0:
+        actions.append(int(best[s]))
+        s = int(next_state[s, best[s]])
+    return actions + [STOP]
+
+
+def walk_back_trajectory(graph: StateGraph, destination: int, n_steps: int) -> tuple[int, list[int]]:
+    """The paper's expert: walk n_steps back from the destination trying MoveBack, MoveLeft, RotateRight
+    in that order (the first that succeeds is taken), then reverse the walk (MoveAhead, MoveRight,
+    RotateLeft) so it ends at the destination; OpenObject first for an open destination, Stop last.
+    Returns (start state, actions)."""
+    opened = graph.opened[destination] >= 0
+    s = graph.state_of(graph.pose(destination)) if opened else destination
+    walk = []
+    for _ in range(n_steps):
+        for name in WALK_BACK_PRIORITY:
+            a = ACTIONS.index(name)
+            if graph.ok[s, a]:
+                walk.append(name)
+                s = int(graph.next[s, a])
+                break
+    actions = [ACTIONS.index(REVERSE[name]) for name in reversed(walk)]
+    return s, actions + ([OPEN] if opened else []) + [STOP]
+
+
+# ------------------------------------------------------------------------------------------------
+# Targets
 
 
 @dataclass(frozen=True)
@@ -204,3 +469,203 @@ def _nearness(graph: StateGraph, s: int, i: int, centre: tuple[float, float]) ->
     d2 = (x * 0.25 - centre[0]) ** 2 + (z * 0.25 - centre[1]) ** 2
     v = graph.visible[s]
     return (round(d2, 6), -v.pixels[v.visible.index(i)], s)
+
+
+# ------------------------------------------------------------------------------------------------
+# Splits and fixed episodes (the task file)
+
+
+def split_kitchens(actionable_counts: dict[str, int]) -> dict[str, list[str]]:
+    """20 train (most actionable targets; ties: lower FloorPlan number), then val/test alternate."""
+    order = sorted(actionable_counts, key=lambda k: (-actionable_counts[k], KITCHEN_NAMES.index(k)))
+    rest = order[N_TRAIN_KITCHENS:]
+    return {
+        "train": sorted(order[:N_TRAIN_KITCHENS], key=KITCHEN_NAMES.index),
+        "val": sorted(rest[0::2], key=KITCHEN_NAMES.index),
+        "test": sorted(rest[1::2], key=KITCHEN_NAMES.index),
+    }
+
+
+def unseen_targets(kitchen: str, targets: list[Target]) -> set[str]:
+    """Per kind, ceil(n / 4) targets chosen by a shuffle seeded with '<kitchen>/<kind>'."""
+    unseen = set()
+    for kind in ("static", "actionable"):
+        ids = sorted(t.object_id for t in targets if t.kind == kind)
+        random.Random(f"{kitchen}/{kind}").shuffle(ids)
+        unseen.update(ids[: math.ceil(len(ids) * UNSEEN_TARGET_FRACTION)])
+    return unseen
+
+
+def episode_starts(graph: StateGraph, target: Target, n: int = EPISODES_PER_TARGET) -> list[int]:
+    """n closed states at pitch 0, at least MIN_START_DISTANCE actions from the target's destination (the
+    place its image shows), drawn (without replacement while there are enough) by a generator seeded
+    with the target."""
+    dist = bfs_distances(graph.next, goal_mask(graph.n_states, [target.destination]))
+    closed = np.arange(graph.n_states) < graph.n_closed
+    candidates = np.flatnonzero(closed & (graph.pitch == START_PITCH) & (dist >= MIN_START_DISTANCE))
+    if len(candidates) == 0:
+        return []
+    digest = hashlib.sha256(f"{graph.kitchen}/{target.object_id}".encode()).digest()
+    seed = int.from_bytes(digest[:8], "little")
+    rng = np.random.default_rng(seed)
+    picks = rng.choice(candidates, n, replace=len(candidates) < n)
+    return [int(s) for s in picks]
+
+
+def kitchen_task_record(graph: StateGraph) -> dict:
+    """One kitchen's entry of the task file: its targets, seen or not, and their fixed episodes."""
+    targets = find_targets(graph)
+    unseen = unseen_targets(graph.kitchen, targets)
+    records, dropped = [], []
+    for t in targets:
+        starts = episode_starts(graph, t)
+        if not starts:
+            dropped.append(t.object_id)  # no state is 10 actions from its destination
+            continue
+        records.append(
+            {
+                "object": t.object_id,
+                "type": t.type,
+                "kind": t.kind,
+                "seen": t.object_id not in unseen,
+                "destination": t.destination,
+                "starts": starts,
+            }
+        )
+    return {
+        "n_states": graph.n_states,
+        "fingerprint": graph_fingerprint(graph.kitchen),
+        "targets": records,
+        "dropped": dropped,
+    }
+
+
+def build_task_file(kitchens=KITCHEN_NAMES, path: Path = TASKS_FILE, root: Path | None = None) -> dict:
+    """Build (or load) every state graph, then write the splits, targets and fixed episodes."""
+    for kitchen, seconds, n in build_all(kitchens, root=root):
+        print(f"{kitchen:12s} {n:5d} states ({seconds:5.1f} s)", flush=True)
+    per_kitchen = {k: kitchen_task_record(state_graph(k, root=root)) for k in kitchens}
+    counts = {k: sum(t["kind"] == "actionable" for t in r["targets"]) for k, r in per_kitchen.items()}
+    record = {
+        "format": TASKS_FORMAT,
+        "episodes_per_target": EPISODES_PER_TARGET,
+        "min_start_distance": MIN_START_DISTANCE,
+        "splits": split_kitchens(counts) if len(kitchens) == len(KITCHEN_NAMES) else {},
+        "kitchens": per_kitchen,
+    }
+    text = json.dumps(record, separators=(",", ":"), sort_keys=True).encode()
+    _atomic_save(path, lambda f: f.write(gzip.compress(text, mtime=0)))
+    load_task_file.cache_clear()
+    return record
+
+
+@cache
+def load_task_file(path: Path = TASKS_FILE) -> dict:
+    try:
+        with gzip.open(path, "rt") as f:
+            record = json.load(f)
+        if record.get("format") != TASKS_FORMAT:
+            raise ValueError(f"format {record.get('format')!r}, expected {TASKS_FORMAT}")
+        for key in ("splits", "kitchens"):
+            if not isinstance(record.get(key), dict):
+                raise ValueError(f"no {key!r} table")
+        return record
+    except FileNotFoundError as e:
+        raise TaskError(f"task file {path} is missing; run `make tasks` to build it") from e
+    except (OSError, EOFError, json.JSONDecodeError, ValueError, AttributeError) as e:
+        raise TaskError(f"task file {path} is corrupt ({type(e).__name__}: {e}); run `make tasks`") from e
+
+
+def kitchen_split(kitchen: str) -> str:
+    """'train', 'val' or 'test'."""
+    check_name(kitchen)
+    for split, names in load_task_file()["splits"].items():
+        if kitchen in names:
+            return split
+    raise TaskError(f"{kitchen} is in no split of {TASKS_FILE}; run `make tasks`")
+
+
+# ------------------------------------------------------------------------------------------------
+# Everything an environment needs about one kitchen
+
+
+@dataclass(frozen=True)
+class TaskTarget:
+    """A target of the task file, resolved against the state graph."""
+
+    object_id: str
+    object_index: int
+    type: str
+    kind: str  # "static" / "actionable"
+    seen: bool  # a training target (False: held out as an unseen target)
+    destination: int  # state index; its view is the target image
+    goal_states: tuple[int, ...]  # every state where the target is visible
+    starts: tuple[int, ...]  # the fixed evaluation episodes' start states
+
+
+@dataclass
+class KitchenTasks:
+    kitchen: str
+    split: str  # train / val / test
+    graph: StateGraph
+    targets: list[TaskTarget]
+    _dist: dict = field(default_factory=dict, repr=False)
+
+    def target(self, object_id: str) -> TaskTarget:
+        for t in self.targets:
+            if t.object_id == object_id:
+                return t
+        raise TaskError(f"{object_id!r} is not a target of {self.kitchen}")
+
+    def distances(self, target: TaskTarget, success_rule: str = "visible") -> np.ndarray:
+        """BFS distance of every state to the target's goal states ('visible': any state that shows
+        it; 'destination': the destination only). Computed once per target and rule."""
+        key = (target.object_id, success_rule)
+        if key not in self._dist:
+            goals = target.goal_states if success_rule == "visible" else (target.destination,)
+            self._dist[key] = bfs_distances(self.graph.next, goal_mask(self.graph.n_states, goals))
+        return self._dist[key]
+
+
+def load_tasks(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = None) -> KitchenTasks:
+    """The state graph (cached), with the targets, splits and fixed episodes of the task file."""
+    record = load_task_file()
+    check_name(kitchen)
+    entry = record["kitchens"].get(kitchen)
+    if entry is None:
+        raise TaskError(f"{kitchen} is not in the task file {TASKS_FILE}; run `make tasks`")
+    graph = state_graph(kitchen, view_size, root)
+    if entry["n_states"] != graph.n_states:
+        raise TaskError(
+            f"the task file was built for {entry['n_states']} states of {kitchen}, the state graph now has "
+            f"{graph.n_states}; run `make tasks` to rebuild the episodes"
+        )
+    found = {t.object_id: t for t in find_targets(graph)}
+    targets = []
+    for t in entry["targets"]:
+        f = found.get(t["object"])
+        if f is None or f.destination != t["destination"] or f.kind != t["kind"]:
+            raise TaskError(
+                f"target {t['object']} of {kitchen} no longer matches the state graph; run `make tasks`"
+            )
+        starts = tuple(t["starts"])
+        targets.append(
+            TaskTarget(
+                f.object_id, f.object_index, f.type, f.kind, t["seen"], f.destination, f.goal_states, starts
+            )
+        )
+    return KitchenTasks(kitchen, kitchen_split(kitchen), graph, targets)
+
+
+if __name__ == "__main__":
+    import sys
+
+    if len(sys.argv) > 1:
+        sys.exit("usage: python -m kgnavbench.tasks  (builds all 30 kitchens; the splits need every one)")
+    t0 = time.perf_counter()
+    rec = build_task_file()
+    n_targets = sum(len(r["targets"]) for r in rec["kitchens"].values())
+    seconds = time.perf_counter() - t0
+    print(f"wrote {TASKS_FILE}: {len(rec['kitchens'])} kitchens, {n_targets} targets in {seconds:.1f} s")
+    for split, ks in rec["splits"].items():
+        print(f"  {split:5s}: {', '.join(ks)}")

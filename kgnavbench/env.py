@@ -1,0 +1,325 @@
+"""Stage 5 — env: target-driven navigation in one kitchen as a PettingZoo ParallelEnv.
+
+    env = kgnavbench.env.parallel_env(kitchen="FloorPlan1", n_agents=4)
+    observations, infos = env.reset(seed=0)
+    while env.agents:
+        actions = {agent: env.action_space(agent).sample() for agent in env.agents}
+        observations, rewards, terminations, truncations, infos = env.step(actions)
+
+Several navigators share one kitchen. Each has its own target and its own episode; they neither see
+nor block each other (each has its own receptacle state, too). An agent leaves `env.agents` when its
+episode ends, as PettingZoo's parallel API requires; the environment is done when all have.
+
+Actions: Discrete(10), the paper's order — 0 MoveAhead, 1 MoveBack, 2 MoveRight, 3 MoveLeft (0.25 m),
+    4 RotateRight, 5 RotateLeft (90°), 6 LookUp, 7 LookDown (30°), 8 OpenObject, 9 Stop.
+    A move into an obstacle fails and counts as a collision. OpenObject opens the visible openable
+    receptacle nearest the image centre; any action but Stop closes it again.
+Observations (per agent, a dict):
+    "view"           uint8 (V, V, 3)  the current egocentric view (RGB)
+    "target"         uint8 (V, V, 3)  the target image: the view at the target's destination
+    "view_objects"   uint8 (125,)     1 for each object type visible in the current view
+    "target_objects" uint8 (125,)     the same for the target image
+    (V = 84 by default; types in `kgnavbench.kitchens.object_types()` order.) Views are looked up in
+    the state graph's cache, so a step renders nothing. Arrays are read-only views of that cache.
+Rewards: -0.01 every step; +0.01 the first time the agent reaches a goal state; +10 on success.
+Termination: Stop ends the episode (stop_ends=False: a Stop that does not succeed is a no-op).
+    Success = Stop in a state where the target is visible (success_rule="destination": at the
+    destination only). Truncation at max_steps (5000 in training; per episode in evaluation).
+Infos (per agent, every step): success, path_length (actions, Stop not counted), episode_length,
+    shortest_path (from the start, under the success rule), collisions, target, target_kind,
+    target_seen, last_view_shows_target, state, and expert_action (the BFS-optimal next action:
+    privileged, for imitation learning and the oracle).
+
+Episodes: in training, reset draws each agent a target (`targets`: "seen", "unseen", "all" or a list
+of object ids) and a start at pitch 0 at least 10 actions from the target's destination, from the
+env's seeded generator.
+Evaluation passes fixed episodes: reset(options={"episodes": [{"target": id, "start": state,
+"max_steps": n}, ...]}), one per agent (fewer episodes than agents: the rest sit out).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+from gymnasium import spaces
+from gymnasium.utils import seeding
+from pettingzoo import ParallelEnv
+
+from .kitchens import object_types
+from .render import top_down_map
+from .tasks import (
+    MIN_START_DISTANCE,
+    MOVES,
+    OPEN,
+    START_PITCH,
+    STOP,
+    VIEW_SIZE,
+    KitchenTasks,
+    TaskError,
+    expert_actions,
+    load_tasks,
+)
+from .world import ACTIONS
+
+STEP_REWARD = -0.01
+ARRIVAL_REWARD = 0.01
+SUCCESS_REWARD = 10.0
+TRAINING_MAX_STEPS = 5000
+SUCCESS_RULES = ("visible", "destination")
+TARGET_SETS = ("seen", "unseen", "all")
+
+
+class EnvError(ValueError):
+    """Bad environment input: unknown option, target, success rule or episode."""
+
+
+def parallel_env(**kwargs) -> NavigationEnv:
+    """PettingZoo's conventional constructor. Keyword arguments: see NavigationEnv."""
+    return NavigationEnv(**kwargs)
+
+
+@dataclass
+class _TargetTables:
+    """Per target of the env, arrays over states: goal or not, BFS distance, expert action."""
+
+    goal: np.ndarray  # (T, S) bool
+    dist: np.ndarray  # (T, S) int
+    expert: np.ndarray  # (T, S) int
+    visible: np.ndarray  # (T, S) bool, target visible (for last_view_shows_target)
+
+
+class NavigationEnv(ParallelEnv):
+    metadata = {"name": "kgnavbench_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
+
+    def __init__(
+        self,
+        kitchen: str = "FloorPlan1",
+        n_agents: int = 4,
+        targets: str | list[str] = "seen",
+        success_rule: str = "visible",
+        stop_ends: bool = True,
+        max_steps: int = TRAINING_MAX_STEPS,
+        view_size: int = VIEW_SIZE,
+        render_mode: str | None = None,
+        tasks: KitchenTasks | None = None,
+    ):
+        if success_rule not in SUCCESS_RULES:
+            raise EnvError(f"unknown success_rule {success_rule!r}; choose one of {SUCCESS_RULES}")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise EnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
+        if not isinstance(n_agents, int) or n_agents < 1:
+            raise EnvError(f"n_agents must be a positive integer, not {n_agents!r}")
+        if not isinstance(max_steps, int) or max_steps < 1:
+            raise EnvError(f"max_steps must be a positive integer, not {max_steps!r}")
+        self.tasks = tasks if tasks is not None else load_tasks(kitchen, view_size)
+        self.kitchen = self.tasks.kitchen
+        self.graph = self.tasks.graph
+        self.success_rule, self.stop_ends, self.max_steps = success_rule, stop_ends, max_steps
+        self.render_mode = render_mode
+        self.possible_agents = [f"navigator_{i}" for i in range(n_agents)]
+        self.agents: list[str] = []
+        self.training_targets = self._select_targets(targets)
+        self._tables = self._target_tables()
+        self._target_row = {t.object_id: k for k, t in enumerate(self.tasks.targets)}
+        v = self.graph.views.shape[1]
+        n_types = len(object_types())
+        self._observation_space = spaces.Dict(
+            {
+                "view": spaces.Box(0, 255, (v, v, 3), np.uint8),
+                "target": spaces.Box(0, 255, (v, v, 3), np.uint8),
+                "view_objects": spaces.Box(0, 1, (n_types,), np.uint8),
+                "target_objects": spaces.Box(0, 1, (n_types,), np.uint8),
+            }
+        )
+        self._action_spaces = {a: spaces.Discrete(len(ACTIONS)) for a in self.possible_agents}
+        self._observation_spaces = {a: self._observation_space for a in self.possible_agents}
+        self.np_random, _ = seeding.np_random(None)
+
+    # -- spaces ----------------------------------------------------------------------------------
+    @functools.cache  # noqa: B019 - PettingZoo wants the same object every call
+    def observation_space(self, agent: str) -> spaces.Space:
+        return self._observation_spaces[agent]
+
+    @functools.cache  # noqa: B019
+    def action_space(self, agent: str) -> spaces.Space:
+        return self._action_spaces[agent]
+
+    # -- set-up ----------------------------------------------------------------------------------
+    def _select_targets(self, targets) -> list[int]:
+        all_targets = self.tasks.targets
+        if isinstance(targets, str):
+            if targets not in TARGET_SETS:
+                raise EnvError(f"unknown target set {targets!r}; choose {TARGET_SETS} or a list of ids")
+            chosen = [
+                k for k, t in enumerate(all_targets) if targets == "all" or t.seen == (targets == "seen")
+            ]
+        else:
+            ids = {t.object_id: k for k, t in enumerate(all_targets)}
+            unknown = [o for o in targets if o not in ids]
+            if unknown:
+                raise EnvError(f"{unknown} are not targets of {self.kitchen}")
+            chosen = [ids[o] for o in targets]
+        if not chosen:
+            raise EnvError(f"{self.kitchen} has no {targets} targets")
+        return chosen
+
+    def _target_tables(self) -> _TargetTables:
+        n = self.graph.n_states
+        goal, dist, expert, visible = [], [], [], []
+        for t in self.tasks.targets:
+            g = np.zeros(n, bool)
+            g[list(t.goal_states)] = True
+            visible.append(g)
+            goal.append(g if self.success_rule == "visible" else np.eye(1, n, t.destination, bool)[0])
+            d = self.tasks.distances(t, self.success_rule)
+            dist.append(d)
+            expert.append(expert_actions(self.graph.next, d))
+        return _TargetTables(np.array(goal), np.array(dist), np.array(expert), np.array(visible))
+
+    def _draw_episode(self) -> tuple[int, int, int]:
+        """(target row, start state, max steps) for training: a seeded target and a start at pitch 0
+        at least MIN_START_DISTANCE actions from its destination, as in the fixed episodes."""
+        row = self.training_targets[self.np_random.integers(len(self.training_targets))]
+        d = self.tasks.distances(self.tasks.targets[row], "destination")
+        closed = np.arange(self.graph.n_states) < self.graph.n_closed
+        ok = closed & (self.graph.pitch == START_PITCH)
+        far = np.flatnonzero(ok & (d >= MIN_START_DISTANCE))
+        if len(far) == 0:
+            far = np.flatnonzero(ok & (d == d[ok].max()))
+        return row, int(far[self.np_random.integers(len(far))]), self.max_steps
+
+    def _parse_episode(self, episode) -> tuple[int, int, int]:
+        try:
+            row = self._target_row[episode["target"]]
+            start = int(episode["start"])
+            max_steps = int(episode.get("max_steps", self.max_steps))
+        except KeyError as e:
+            raise EnvError(f"bad episode {episode!r}: unknown target or missing key {e}") from e
+        except (TypeError, ValueError) as e:
+            raise EnvError(f"bad episode {episode!r}: {e}") from e
+        if not 0 <= start < self.graph.n_states or max_steps < 1:
+            raise EnvError(f"bad episode {episode!r}: start or max_steps out of range")
+        if self._tables.dist[row, start] < 0:
+            raise EnvError(f"bad episode {episode!r}: the goal cannot be reached from the start")
+        return row, start, max_steps
+
+    # -- the episode -----------------------------------------------------------------------------
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            self.np_random, _ = seeding.np_random(seed)
+        episodes = (options or {}).get("episodes")
+        if episodes is not None:
+            if len(episodes) > len(self.possible_agents):
+                raise EnvError(f"{len(episodes)} episodes for {len(self.possible_agents)} agents")
+            drawn = [self._parse_episode(e) for e in episodes]
+        else:
+            drawn = [self._draw_episode() for _ in self.possible_agents]
+        self.agents = self.possible_agents[: len(drawn)]
+        n = len(drawn)
+        self._row = np.array([d[0] for d in drawn], np.int64)
+        self._state = np.array([d[1] for d in drawn], np.int64)
+        self._start = self._state.copy()
+        self._cap = np.array([d[2] for d in drawn], np.int64)
+        self._steps = np.zeros(n, np.int64)
+        self._path = np.zeros(n, np.int64)
+        self._collisions = np.zeros(n, np.int64)
+        self._success = np.zeros(n, bool)
+        self._arrived = self._tables.goal[self._row, self._state]
+        self._shortest = self._tables.dist[self._row, self._start]
+        self._live = list(range(n))
+        self._trail = [[int(s)] for s in self._state]
+        observations = {a: self._observe(i) for i, a in enumerate(self.agents)}
+        infos = {a: self._info(i) for i, a in enumerate(self.agents)}
+        return observations, infos
+
+    def step(self, actions: dict):
+        live = self._live
+        try:
+            act = np.array([actions[self.possible_agents[i]] for i in live], np.int64).reshape(len(live))
+        except KeyError as e:
+            raise EnvError(f"no action for live agent {e}") from e
+        if ((act < 0) | (act >= len(ACTIONS))).any():
+            raise EnvError(f"actions must be integers 0..{len(ACTIONS) - 1}, got {act.tolist()}")
+        idx = np.array(live, np.int64)
+        g = self.graph
+        state = self._state[idx]
+        row = self._row[idx]
+        nxt = g.next[state, act]
+        moved_ok = g.ok[state, act]
+        stop = act == STOP
+        on_goal = self._tables.goal[row, nxt]
+        success = stop & on_goal
+        # a Stop that fails: the episode ends, or (stop_ends=False) nothing happens at all
+        self._state[idx] = nxt
+        self._steps[idx] += 1
+        self._path[idx] += ~stop
+        self._collisions[idx] += np.isin(act, MOVES) & ~moved_ok
+        first_arrival = on_goal & ~self._arrived[idx]
+        self._arrived[idx] |= on_goal
+        self._success[idx] = success
+        rewards_arr = STEP_REWARD + ARRIVAL_REWARD * first_arrival + SUCCESS_REWARD * success
+        terminated_arr = success | (stop & self.stop_ends)
+        truncated_arr = ~terminated_arr & (self._steps[idx] >= self._cap[idx])
+
+        observations, rewards, terminations, truncations, infos = {}, {}, {}, {}, {}
+        still = []
+        for k, i in enumerate(live):
+            agent = self.possible_agents[i]
+            self._trail[i].append(int(nxt[k]))
+            observations[agent] = self._observe(i)
+            rewards[agent] = float(rewards_arr[k])
+            terminations[agent] = bool(terminated_arr[k])
+            truncations[agent] = bool(truncated_arr[k])
+            infos[agent] = self._info(i)
+            if not (terminated_arr[k] or truncated_arr[k]):
+                still.append(i)
+        self._live = still
+        self.agents = [self.possible_agents[i] for i in still]
+        return observations, rewards, terminations, truncations, infos
+
+    def _observe(self, i: int) -> dict:
+        g, s = self.graph, self._state[i]
+        dest = self.tasks.targets[self._row[i]].destination
+        return {
+            "view": g.views[s],
+            "target": g.views[dest],
+            "view_objects": g.object_vectors[s],
+            "target_objects": g.object_vectors[dest],
+        }
+
+    def _info(self, i: int) -> dict:
+        t = self.tasks.targets[self._row[i]]
+        s = int(self._state[i])
+        return {
+            "success": bool(self._success[i]),
+            "path_length": int(self._path[i]),
+            "episode_length": int(self._steps[i]),
+            "shortest_path": int(self._shortest[i]),
+            "collisions": int(self._collisions[i]),
+            "target": t.object_id,
+            "target_kind": t.kind,
+            "target_seen": t.seen,
+            "last_view_shows_target": bool(self._tables.visible[self._row[i], s]),
+            "state": s,
+            "expert_action": int(self._tables.expert[self._row[i], s]),
+        }
+
+    # -- looking at it ---------------------------------------------------------------------------
+    def render(self):
+        """rgb_array: the top-down map with every agent of the current episodes and agent 0's path."""
+        if self.render_mode is None:
+            return None
+        if not hasattr(self, "_state"):
+            raise EnvError("render() before reset()")
+        poses = [self.graph.pose(int(s)) for s in self._state]
+        path = [self.graph.pose(s) for s in self._trail[0]] if self._trail else None
+        highlight = sorted({self.tasks.targets[r].object_index for r in self._row})
+        return top_down_map(self.graph.world, 400, poses, path, highlight)
+
+    def close(self) -> None:
+        pass
+
+
+__all__ = ["NavigationEnv", "parallel_env", "EnvError", "TaskError", "OPEN", "STOP", "ACTIONS"]
