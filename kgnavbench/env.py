@@ -184,7 +184,7 @@ class NavigationEnv(ParallelEnv):
         row = self.training_targets[self.np_random.integers(len(self.training_targets))]
         d = self.tasks.distances(self.tasks.targets[row], "destination")
         closed = np.arange(self.graph.n_states) < self.graph.n_closed
-        ok = closed & (self.graph.pitch == START_PITCH)
+        ok = closed & (self.graph.pitch == START_PITCH) & ~self._tables.visible[row]
         far = np.flatnonzero(ok & (d >= MIN_START_DISTANCE))
         if len(far) == 0:
             far = np.flatnonzero(ok & (d == d[ok].max()))

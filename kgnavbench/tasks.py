@@ -23,10 +23,10 @@ Splits (rules in code here, written down in the README):
     other ten, in the same order, alternate validation and test;
   * targets: in every kitchen and for each kind, ceil(n / 4) targets are unseen, chosen by a shuffle
     seeded with "<kitchen>/<kind>"; the rest are seen (training targets).
-Fixed episodes: 100 per target, starting in a closed state at pitch 0 at least 10 actions from the
-target's destination (the place its image shows), drawn with a generator seeded by
-"<kitchen>/<object id>". They are saved in `kgnavbench/data/tasks.json.gz` (committed; `make tasks`
-rebuilds it) and are the same for every method.
+Fixed episodes: 100 per target, starting in a closed state at pitch 0 that does not show the target,
+at least 10 actions from the target's destination (the place its image shows), drawn with a generator
+seeded by "<kitchen>/<object id>". They are saved in `kgnavbench/data/tasks.json.gz` (committed;
+`make tasks` rebuilds it) and are the same for every method.
 
 Shortest paths: multi-source BFS over the reversed transition table, one vectorised frontier
 expansion per level (no Python loop per node). Experts: the BFS-optimal one (first action in the
@@ -497,12 +497,13 @@ def unseen_targets(kitchen: str, targets: list[Target]) -> set[str]:
 
 
 def episode_starts(graph: StateGraph, target: Target, n: int = EPISODES_PER_TARGET) -> list[int]:
-    """n closed states at pitch 0, at least MIN_START_DISTANCE actions from the target's destination (the
-    place its image shows), drawn (without replacement while there are enough) by a generator seeded
-    with the target."""
+    """n closed states at pitch 0 that do not show the target, at least MIN_START_DISTANCE actions from
+    the target's destination (the place its image shows), drawn (without replacement while there are
+    enough) by a generator seeded with the target."""
     dist = bfs_distances(graph.next, goal_mask(graph.n_states, [target.destination]))
     closed = np.arange(graph.n_states) < graph.n_closed
-    candidates = np.flatnonzero(closed & (graph.pitch == START_PITCH) & (dist >= MIN_START_DISTANCE))
+    unseen = ~goal_mask(graph.n_states, target.goal_states)  # the target is not in view at the start
+    candidates = np.flatnonzero(closed & unseen & (graph.pitch == START_PITCH) & (dist >= MIN_START_DISTANCE))
     if len(candidates) == 0:
         return []
     digest = hashlib.sha256(f"{graph.kitchen}/{target.object_id}".encode()).digest()
