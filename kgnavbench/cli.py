@@ -3,6 +3,12 @@
     kgnavbench kitchens [NAME] [--json]
     kgnavbench walk --kitchen NAME --actions A,B,...|random:N [--start x,z,heading,pitch]
                     [--size N] [--out DIR] [--json] [--seed S] [--placement-seed S]
+    kgnavbench prepare [--kitchens A,B] [--workers N]
+    kgnavbench targets NAME [--json]
+    kgnavbench methods
+    kgnavbench eval --method NAME [--success-rule visible|destination] [--stop-noop]
+                    [--split table|train|val|test] [--kitchens A,B] [--episodes N] [--set KEY=VALUE]
+                    [--seed S] [--runs DIR] [--json]
 
 Bad input (an unknown kitchen or action, an unreachable start, a malformed pose, an out-of-range size,
 an unusable output folder) prints one line ``kgnavbench: error: ...`` to stderr and exits with status 2.
@@ -17,9 +23,14 @@ import os
 import random
 import re
 import sys
+import time
 from pathlib import Path
 
-from .kitchens import KITCHEN_NAMES, Kitchen, KitchenError, kitchen_summary, load_kitchen
+from .env import EnvError
+from .evaluate import SPLITS, EvalConfig, EvalError, evaluate
+from .kitchens import KITCHEN_NAMES, Kitchen, KitchenError, check_name, kitchen_summary, load_kitchen
+from .plugins import PluginError, load_plugin, parse_options, plugin_sources
+from .tasks import EPISODES_PER_TARGET, TaskError, build_all, cache_dir, load_tasks
 from .world import ACTIONS, Pose, World, WorldError, parse_action, parse_pose
 
 PROG = "kgnavbench"
@@ -197,6 +208,120 @@ def cmd_walk(args: argparse.Namespace) -> int:
 
 
 # ----------------------------------------------------------------------------------------------------
+# prepare, targets, methods, eval
+
+# The paper's random-walk row of Table I, as printed there (arXiv 2005.02153).
+PAPER_RANDOM_WALK = "1.56 / 14.86 / 15.84 / 0.23 / 3.25"
+
+
+def _kitchen_list(text: str | None) -> list[str]:
+    if not text:
+        return list(KITCHEN_NAMES)
+    return [check_name(k.strip()) for k in text.split(",") if k.strip()]
+
+
+def cmd_prepare(args: argparse.Namespace) -> int:
+    kitchens = _kitchen_list(args.kitchens)
+    start = time.perf_counter()
+    total = 0
+    for kitchen, seconds, n in build_all(kitchens, workers=args.workers):
+        total += n
+        print(f"{kitchen:12s} {n:5d} states  {seconds:6.1f} s", flush=True)
+    dt = time.perf_counter() - start
+    print(f"{len(kitchens)} kitchens, {total} states ready in {cache_dir()} ({dt:.1f} s)")
+    return 0
+
+
+def cmd_targets(args: argparse.Namespace) -> int:
+    tasks = load_tasks(check_name(args.name))
+    rows = []
+    for t in tasks.targets:
+        dest = tasks.graph.pose(t.destination)
+        opened = tasks.graph.opened[t.destination]
+        rows.append(
+            {
+                "target": t.object_id,
+                "kind": t.kind,
+                "seen": t.seen,
+                "destination": f"{dest.x:.2f},{dest.z:.2f},{dest.heading},{dest.pitch}",
+                "opened": tasks.graph.world.objects[opened].id if opened >= 0 else None,
+                "goal_states": len(t.goal_states),
+                "episodes": len(t.starts),
+            }
+        )
+    if args.json:
+        print(json.dumps({"kitchen": tasks.kitchen, "split": tasks.split, "targets": rows}, indent=1))
+        return 0
+    print(f"{tasks.kitchen} ({tasks.split} split): {len(rows)} targets")
+    headers = ["target", "kind", "seen", "destination x,z,heading,pitch", "opened", "goal states", "episodes"]
+    table = [
+        [
+            r["target"],
+            r["kind"],
+            "yes" if r["seen"] else "no",
+            r["destination"],
+            r["opened"] or "-",
+            r["goal_states"],
+            r["episodes"],
+        ]
+        for r in rows
+    ]
+    print(_table(headers, table, {5, 6}))
+    return 0
+
+
+def cmd_methods(args: argparse.Namespace) -> int:
+    rows = []
+    for name, source in plugin_sources().items():
+        try:
+            plugin = load_plugin(name)
+            rows.append([name, plugin.description, source])
+        except PluginError as e:
+            rows.append([name, f"BROKEN: {e}", source])
+    print(_table(["method", "description", "source"], rows, set()))
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    options = parse_options(args.set or [])
+    load_plugin(args.method).config(options)  # unknown method or option: fail before any work
+    config = EvalConfig(
+        method=args.method,
+        options=tuple(sorted(options.items())),
+        success_rule=args.success_rule,
+        stop_ends=not args.stop_noop,
+        split=args.split,
+        kitchens=tuple(_kitchen_list(args.kitchens)) if args.kitchens else (),
+        episodes_per_target=args.episodes,
+        seed=args.seed,
+    )
+    progress = (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else print
+    run = evaluate(config, args.runs, progress=progress)
+    if args.json:
+        summary = {f"{c}/{k}": vars(m) for (c, k), m in run.summary.items()}
+        print(json.dumps({"run": str(run.directory), "summary": summary}, indent=1))
+        return 0
+    print()
+    print((run.directory / "table.md").read_text().rstrip())
+    if args.method == "random_walk":
+        print(f"paper, random walk (Table I, as printed): {PAPER_RANDOM_WALK}")
+    steps = f", {run.steps:,} agent-steps ({run.steps / max(run.seconds, 1e-9):,.0f}/s)" if run.steps else ""
+    resumed = f"; resumed {len(run.resumed)} kitchens from disk" if run.resumed else ""
+    print(f"{len(run.results)} episodes in {run.seconds:.1f} s{steps}{resumed}. Results: {run.directory}")
+    return 0
+
+
+def _episodes(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if not 1 <= n <= EPISODES_PER_TARGET:
+        raise argparse.ArgumentTypeError(f"{n} is not in 1..{EPISODES_PER_TARGET}")
+    return n
+
+
+# ----------------------------------------------------------------------------------------------------
 # parser and entry point
 
 
@@ -251,6 +376,61 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, metavar="DIR", help="write view_NNN.png per step and map.png here")
     p.add_argument("--json", action="store_true", help="print one JSON object per step instead of a table")
     p.set_defaults(func=cmd_walk)
+
+    p = sub.add_parser(
+        "prepare",
+        help="build and cache the state graphs and 84x84 views of the kitchens",
+        description="Build every kitchen's state graph (transitions, visibility, views) into the cache "
+        "($KGNAVBENCH_CACHE, else ~/.cache/kgnavbench). Other commands build what they need on first "
+        "use; this does it up front, one process per core.",
+    )
+    p.add_argument("--kitchens", metavar="A,B", help="comma-separated kitchens (default: all 30)")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: one per core)")
+    p.set_defaults(func=cmd_prepare)
+
+    p = sub.add_parser(
+        "targets",
+        help="a kitchen's targets: kind, seen or unseen, destination, episodes",
+        description="The targets of one kitchen with their kind (static/actionable), whether they are "
+        "training (seen) targets, their destination pose and the receptacle open there.",
+    )
+    p.add_argument("name", metavar="NAME", help="a kitchen, FloorPlan1 .. FloorPlan30")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_targets)
+
+    p = sub.add_parser("methods", help="list the baseline plugins", description="List the plugins.")
+    p.set_defaults(func=cmd_methods)
+
+    p = sub.add_parser(
+        "eval",
+        help="evaluate one method on the fixed episodes and print the Table I layout",
+        description="Run a method's plugin over the fixed evaluation episodes (the same for every "
+        "method) and print SR, SPL, their L>=5 buckets, collisions, last-view rate and episode length "
+        "per Table I column and target kind. Results go to RUNS/eval/<run name>/; rerunning the same "
+        "evaluation resumes from the kitchens already saved there.",
+    )
+    p.add_argument("--method", required=True, metavar="NAME", help="a plugin (see `kgnavbench methods`)")
+    p.add_argument(
+        "--success-rule",
+        choices=("visible", "destination"),
+        default="visible",
+        help="success = Stop with the target visible (default) or at its destination only",
+    )
+    p.add_argument("--stop-noop", action="store_true", help="a Stop that does not succeed is a no-op")
+    p.add_argument("--split", choices=SPLITS, default="table", help="table = train + test kitchens (default)")
+    p.add_argument("--kitchens", metavar="A,B", help="only these kitchens (default: all of the split)")
+    p.add_argument(
+        "--episodes",
+        type=_episodes,
+        default=EPISODES_PER_TARGET,
+        metavar="N",
+        help=f"the first N fixed episodes of every target (default {EPISODES_PER_TARGET})",
+    )
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a plugin option (repeatable)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the policy (default 0)")
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=cmd_eval)
     return parser
 
 
@@ -276,7 +456,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(_join_negative_values(argv))
         return args.func(args)
-    except (UsageError, KitchenError, WorldError) as e:
+    except (UsageError, KitchenError, WorldError, TaskError, EnvError, EvalError, PluginError) as e:
         print(f"{PROG}: error: {e}", file=sys.stderr)
         return 2
     except SystemExit as e:  # --help

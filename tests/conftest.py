@@ -1,0 +1,28 @@
+"""Shared fixtures: a hermetic state-graph cache and FloorPlan1's tasks, built once per session."""
+
+import os
+
+import pytest
+
+from kgnavbench import tasks
+
+
+@pytest.fixture(scope="session", autouse=True)
+def hermetic_cache(tmp_path_factory):
+    """Point the state-graph cache at a fresh folder, so no test reads or writes the user's cache."""
+    root = tmp_path_factory.mktemp("kgnavbench-cache")
+    old = os.environ.get("KGNAVBENCH_CACHE")
+    os.environ["KGNAVBENCH_CACHE"] = str(root)
+    try:
+        yield root
+    finally:
+        if old is None:
+            os.environ.pop("KGNAVBENCH_CACHE", None)
+        else:
+            os.environ["KGNAVBENCH_CACHE"] = old
+
+
+@pytest.fixture(scope="session")
+def floorplan1_tasks(hermetic_cache):
+    """FloorPlan1's state graph (built into the hermetic cache, ~8 s), targets and fixed episodes."""
+    return tasks.load_tasks("FloorPlan1")
