@@ -1,41 +1,46 @@
-"""Seconds to build the state graph (states, transitions, visibility, open twins) and the targets'
-BFS distances for every kitchen. Run: .venv/bin/python benchmarks/state_graphs.py [--kitchens A,B]
+"""Seconds to build, from nothing, what every step and evaluation looks up: each kitchen's state graph
+(transitions, visibility, open twins), its cached 84x84 views, its targets and their BFS distances.
+
+It builds into a fresh temporary cache (the real one is untouched), one process per core, as
+`kgnavbench prepare` does. Run: .venv/bin/python benchmarks/state_graphs.py [--kitchens A,B]
 """
 
 import argparse
+import tempfile
 import time
-
-import numpy as np
+from pathlib import Path
 
 from kgnavbench.kitchens import KITCHEN_NAMES
-from kgnavbench.tasks import bfs_distances, build_state_graph, find_targets
-from kgnavbench.world import World
+from kgnavbench.tasks import bfs_distances, build_all, find_targets, goal_mask, state_graph
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--kitchens", default=",".join(KITCHEN_NAMES))
+    ap.add_argument("--workers", type=int, default=None, help="processes (default: one per core)")
     args = ap.parse_args()
-    total_start = time.perf_counter()
-    n_states = n_targets = 0
-    for name in args.kitchens.split(","):
+    kitchens = args.kitchens.split(",")
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
         start = time.perf_counter()
-        graph = build_state_graph(World(name))
+        n_states = 0
+        for name, seconds, n in build_all(kitchens, root=root, workers=args.workers):
+            n_states += n
+            print(f"{name:12s} {n:5d} states, graph + views {seconds:5.1f} s", flush=True)
         built = time.perf_counter() - start
-        targets = find_targets(graph)
-        for t in targets:
-            bfs_distances(graph.next, np.isin(np.arange(graph.n_states), t.goal_states))
-        n_states += graph.n_states
-        n_targets += len(targets)
-        kinds = sum(t.kind == "actionable" for t in targets)
-        print(
-            f"{name:12s} {graph.n_states:5d} states {len(targets):3d} targets ({kinds} actionable) "
-            f"graph {built:5.2f} s, with BFS {time.perf_counter() - start:5.2f} s"
-        )
-    total = time.perf_counter() - total_start
+        n_targets = 0
+        for name in kitchens:
+            graph = state_graph(name, root=root)
+            targets = find_targets(graph)
+            for t in targets:
+                bfs_distances(graph.next, goal_mask(graph.n_states, t.goal_states))
+                bfs_distances(graph.next, goal_mask(graph.n_states, [t.destination]))
+            n_targets += len(targets)
+        total = time.perf_counter() - start
+        size = sum(p.stat().st_size for p in root.iterdir()) / 1e9
     print(
-        f"all: {n_states} states, {n_targets} targets in {total:.1f} s "
-        f"({n_states / total:.0f} states/s); 84x84 view caching is not part of this yet"
+        f"all: {len(kitchens)} kitchens, {n_states} states, {n_targets} targets: graphs + 84x84 views "
+        f"{built:.1f} s, with targets and BFS (both rules) {total:.1f} s; cache {size:.2f} GB"
     )
 
 

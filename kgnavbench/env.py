@@ -90,6 +90,14 @@ class _TargetTables:
     visible: np.ndarray  # (T, S) bool, target visible (for last_view_shows_target)
 
 
+def _is_integer(value) -> bool:
+    """An int or a NumPy integer (also 0-d arrays of one, as gymnasium's Discrete.sample gives); not a
+    bool, not a float."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
 class NavigationEnv(ParallelEnv):
     metadata = {"name": "kgnavbench_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
 
@@ -193,12 +201,14 @@ class NavigationEnv(ParallelEnv):
     def _parse_episode(self, episode) -> tuple[int, int, int]:
         try:
             row = self._target_row[episode["target"]]
-            start = int(episode["start"])
-            max_steps = int(episode.get("max_steps", self.max_steps))
+            start, max_steps = episode["start"], episode.get("max_steps", self.max_steps)
         except KeyError as e:
             raise EnvError(f"bad episode {episode!r}: unknown target or missing key {e}") from e
-        except (TypeError, ValueError) as e:
+        except (TypeError, AttributeError) as e:
             raise EnvError(f"bad episode {episode!r}: {e}") from e
+        if not all(_is_integer(v) for v in (start, max_steps)):
+            raise EnvError(f"bad episode {episode!r}: start and max_steps must be integers")
+        start, max_steps = int(start), int(max_steps)
         if not 0 <= start < self.graph.n_states or max_steps < 1:
             raise EnvError(f"bad episode {episode!r}: start or max_steps out of range")
         if self._tables.dist[row, start] < 0:
@@ -237,9 +247,12 @@ class NavigationEnv(ParallelEnv):
     def step(self, actions: dict):
         live = self._live
         try:
-            act = np.array([actions[self.possible_agents[i]] for i in live], np.int64).reshape(len(live))
+            given = [actions[self.possible_agents[i]] for i in live]
         except KeyError as e:
             raise EnvError(f"no action for live agent {e}") from e
+        if not all(_is_integer(a) for a in given):
+            raise EnvError(f"actions must be integers 0..{len(ACTIONS) - 1}, got {given}")
+        act = np.array(given, np.int64).reshape(len(live))
         if ((act < 0) | (act >= len(ACTIONS))).any():
             raise EnvError(f"actions must be integers 0..{len(ACTIONS) - 1}, got {act.tolist()}")
         idx = np.array(live, np.int64)

@@ -179,6 +179,7 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
         for agent in env.agents:
             policy.reset(agent)
         start = {agent: e["start"] for agent, e in zip(env.agents, episodes)}
+        finished: dict[str, EpisodeResult] = {}
         while env.agents:
             shown = infos if plugin.privileged else _without_expert(infos)
             actions = policy.act(observations, shown)
@@ -187,23 +188,22 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
             for agent in list(observations):
                 if terminations[agent] or truncations[agent]:
                     i = infos[agent]
-                    results.append(
-                        EpisodeResult(
-                            kitchen=kitchen,
-                            target=i["target"],
-                            kind=i["target_kind"],
-                            column=column,
-                            start=start[agent],
-                            max_steps=episodes[0]["max_steps"],
-                            success=i["success"],
-                            path_length=i["path_length"],
-                            shortest_path=i["shortest_path"],
-                            collisions=i["collisions"],
-                            last_view_shows_target=i["last_view_shows_target"],
-                            episode_length=i["episode_length"],
-                        )
+                    finished[agent] = EpisodeResult(
+                        kitchen=kitchen,
+                        target=i["target"],
+                        kind=i["target_kind"],
+                        column=column,
+                        start=start[agent],
+                        max_steps=episodes[0]["max_steps"],
+                        success=i["success"],
+                        path_length=i["path_length"],
+                        shortest_path=i["shortest_path"],
+                        collisions=i["collisions"],
+                        last_view_shows_target=i["last_view_shows_target"],
+                        episode_length=i["episode_length"],
                     )
                     del observations[agent], infos[agent]
+        results.extend(finished[agent] for agent in start)  # in episode order, not finishing order
     return results
 
 
@@ -384,7 +384,7 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
     kitchens = config.kitchen_list()
     directory = Path(runs_dir) / "eval" / config.run_name()
     saved = {
-        "config": asdict(config),
+        "config": json.loads(json.dumps(asdict(config))),  # as it reads back (tuples are lists)
         "plugin_config": dataclasses.asdict(plugin_config),
         "plugin_source": plugin.source,
         "git_revision": git_revision(),

@@ -117,6 +117,10 @@ class StateGraph:
         for s, v in enumerate(self.visible):
             vectors[s, [type_index[i] for i in v.visible]] = 1
         self.object_vectors = vectors
+        # observations are views into these arrays: nobody may write through them
+        self.object_vectors.flags.writeable = False
+        if self.views.flags.writeable:
+            self.views.flags.writeable = False
 
     @property
     def n_states(self) -> int:
@@ -621,6 +625,8 @@ class KitchenTasks:
     def distances(self, target: TaskTarget, success_rule: str = "visible") -> np.ndarray:
         """BFS distance of every state to the target's goal states ('visible': any state that shows
         it; 'destination': the destination only). Computed once per target and rule."""
+        if success_rule not in ("visible", "destination"):
+            raise TaskError(f"unknown success rule {success_rule!r}; choose 'visible' or 'destination'")
         key = (target.object_id, success_rule)
         if key not in self._dist:
             goals = target.goal_states if success_rule == "visible" else (target.destination,)

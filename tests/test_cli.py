@@ -291,3 +291,79 @@ def test_walk_with_a_placement_seed(capsys):
     first = run(capsys, *args)
     assert first[0] == 0 and first == run(capsys, *args)
     assert [json.loads(line)["step"] for line in first[1].splitlines()] == [0, 1]
+
+
+# ----------------------------------------------------------------------------------------------------
+# prepare, targets, methods, eval
+
+
+def test_prepare_reports_the_cached_kitchen(capsys, floorplan1_tasks):
+    code, out, err = run(capsys, "prepare", "--kitchens", "FloorPlan1", "--workers", "1")
+    assert code == 0, err
+    assert out.splitlines()[0].split()[:3] == ["FloorPlan1", str(floorplan1_tasks.graph.n_states), "states"]
+    assert "1 kitchens" in out.splitlines()[-1]
+
+
+def test_targets_lists_the_egg_as_actionable(capsys, floorplan1_tasks):
+    code, out, err = run(capsys, "targets", "FloorPlan1", "--json")
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["split"] == "train" and len(data["targets"]) == len(floorplan1_tasks.targets)
+    egg = next(t for t in data["targets"] if t["target"] == EGG)
+    assert egg["kind"] == "actionable" and egg["opened"] == FRIDGE and egg["episodes"] == 100
+
+
+def test_methods_lists_the_plugins(capsys):
+    code, out, err = run(capsys, "methods")
+    assert code == 0, err
+    assert {line.split()[0] for line in out.splitlines()[1:]} >= {"oracle", "random_walk"}
+
+
+def test_eval_prints_the_table_i_layout(capsys, tmp_path, floorplan1_tasks):
+    argv = [
+        "eval",
+        "--method",
+        "oracle",
+        "--kitchens",
+        "FloorPlan1",
+        "--episodes",
+        "1",
+        "--runs",
+        str(tmp_path),
+    ]
+    code, out, err = run(capsys, *argv)
+    assert code == 0, err
+    rows = [line for line in out.splitlines() if line.startswith("| seen kitchens / seen targets")]
+    assert [r.split("|")[2].strip() for r in rows] == ["static", "actionable", "all"]
+    assert all(r.split("|")[4].strip() == "100.00" and r.split("|")[5].strip() == "100.00" for r in rows)
+    assert f"{len(floorplan1_tasks.targets)} episodes" in out.splitlines()[-1]
+    code, out, err = run(capsys, *argv, "--json")
+    assert code == 0 and json.loads(out)["summary"]["all/all"]["sr"] == 100.0
+
+
+def test_eval_random_walk_shows_the_papers_row(capsys, tmp_path, floorplan1_tasks):
+    code, out, err = run(
+        capsys, "eval", "--method", "random_walk", "--kitchens", "FloorPlan1", "--episodes", "1",
+        "--runs", str(tmp_path), "--set", "stop_probability=0.5",
+    )  # fmt: skip
+    assert code == 0, err
+    assert "1.56 / 14.86 / 15.84 / 0.23 / 3.25" in out and "stop_probability=0.5" in out
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["eval", "--method", "nope"], "unknown method 'nope'"),
+        (["eval", "--method", "random_walk", "--set", "speed=2"], "unknown option 'speed'"),
+        (["eval", "--method", "random_walk", "--set", "speed"], "not KEY=VALUE"),
+        (["eval", "--method", "oracle", "--kitchens", "FloorPlan99"], "FloorPlan99"),
+        (["eval", "--method", "oracle", "--episodes", "0"], "0 is not in 1..100"),
+        (["eval", "--method", "oracle", "--split", "dev"], "invalid choice: 'dev'"),
+        (["targets", "Kitchen7"], "Kitchen7"),
+    ],
+)
+def test_eval_errors_name_the_problem(capsys, tmp_path, argv, message):
+    code, out, err = run(capsys, *argv, *(["--runs", str(tmp_path)] if argv[0] == "eval" else []))
+    assert code == 2
+    assert err.startswith("kgnavbench: error: ") and message in err
+    assert not list(tmp_path.iterdir())  # nothing written

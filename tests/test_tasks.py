@@ -1,28 +1,84 @@
 """The state graph, BFS distances and targets (tasks stage)."""
 
+import gzip
+import json
+import math
+import random
+import shutil
+from collections import Counter
+
 import numpy as np
 import pytest
 
-from kgnavbench.tasks import OPEN, STOP, bfs_distances, build_state_graph, find_targets
+from kgnavbench import tasks
+from kgnavbench.kitchens import KITCHEN_NAMES
+from kgnavbench.tasks import (
+    EPISODES_PER_TARGET,
+    MIN_START_DISTANCE,
+    OPEN,
+    START_PITCH,
+    STOP,
+    TASKS_FORMAT,
+    Target,
+    TaskError,
+    bfs_distances,
+    expert_actions,
+    find_targets,
+    goal_mask,
+    kitchen_task_record,
+    load_graph,
+    load_task_file,
+    shortest_trajectory,
+    split_kitchens,
+    unseen_targets,
+    walk_back_trajectory,
+)
 from kgnavbench.world import ACTIONS, Pose, World
 
 EGG = "Egg|-02.04|+00.81|+01.24"
 FRIDGE = "Fridge|-02.10|+00.00|+01.07"
+APPLE = "Apple|-00.47|+01.15|+00.48"
+MOVE_AHEAD, MOVE_RIGHT, ROTATE_LEFT = (ACTIONS.index(a) for a in ("MoveAhead", "MoveRight", "RotateLeft"))
+
+# a corridor 0-1-2-3 with a one-way shortcut 0 -> 3 and a dead end 4 that only leads to itself
+#   action 0: right, action 1: left, action 2: shortcut (only from 0)
+CORRIDOR = np.array([[1, 0, 3], [2, 0, 1], [3, 1, 2], [3, 2, 3], [4, 4, 4]])
 
 
 def test_bfs_on_a_hand_made_graph():
-    # a corridor 0-1-2-3 with a one-way shortcut 0 -> 3 and a dead end 4 that only leads to itself
-    #   action 0: right, action 1: left, action 2: shortcut (only from 0)
-    nxt = np.array([[1, 0, 3], [2, 0, 1], [3, 1, 2], [3, 2, 3], [4, 4, 4]])
     goal = np.array([False, False, False, True, False])
-    assert bfs_distances(nxt, goal).tolist() == [1, 2, 1, 0, -1]
+    assert bfs_distances(CORRIDOR, goal).tolist() == [1, 2, 1, 0, -1]
     goal = np.array([True, False, False, False, False])
-    assert bfs_distances(nxt, goal).tolist() == [0, 1, 2, 3, -1]
+    assert bfs_distances(CORRIDOR, goal).tolist() == [0, 1, 2, 3, -1]
+
+
+def test_expert_actions_on_a_hand_made_graph():
+    dist = bfs_distances(CORRIDOR, goal_mask(5, [3]))
+    # 0 takes the shortcut, 1 and 2 go right, 3 is the goal (Stop), 4 cannot reach it
+    assert expert_actions(CORRIDOR, dist).tolist() == [2, 0, 0, STOP, -1]
+    assert shortest_trajectory(CORRIDOR, dist, 0) == [2, STOP]
+    assert shortest_trajectory(CORRIDOR, dist, 1) == [0, 0, STOP]
+    assert shortest_trajectory(CORRIDOR, dist, 3) == [STOP]
+    with pytest.raises(TaskError, match="state 4 cannot reach the goal"):
+        shortest_trajectory(CORRIDOR, dist, 4)
+
+    dist = bfs_distances(CORRIDOR, goal_mask(5, [0]))
+    assert expert_actions(CORRIDOR, dist).tolist() == [STOP, 1, 1, 1, -1]
+    assert shortest_trajectory(CORRIDOR, dist, 3) == [1, 1, 1, STOP]
+
+
+def test_expert_breaks_ties_by_the_first_action():
+    # from 0 both action 0 (to 1) and action 1 (to 2) lead one step nearer to 3; action 2 stays put
+    nxt = np.array([[1, 2, 0], [3, 3, 1], [3, 3, 2], [3, 3, 3]])
+    dist = bfs_distances(nxt, goal_mask(4, [3]))
+    assert dist.tolist() == [2, 1, 1, 0]
+    assert expert_actions(nxt, dist).tolist() == [0, 0, 0, STOP]
+    assert shortest_trajectory(nxt, dist, 0) == [0, 0, STOP]
 
 
 @pytest.fixture(scope="module")
-def graph():
-    return build_state_graph(World("FloorPlan1"))
+def graph(floorplan1_tasks):
+    return floorplan1_tasks.graph
 
 
 def test_transitions_follow_the_world(graph):
@@ -67,3 +123,356 @@ def test_the_egg_is_an_actionable_target_seen_only_with_the_fridge_open(graph):
     assert dist[graph.next[start, ACTIONS.index("RotateRight")]] == 2
     assert targets[FRIDGE].kind == "static"
     assert all(graph.opened[s] == -1 for s in targets[FRIDGE].goal_states)
+
+
+# ------------------------------------------------------------------------------------------------
+# Shortest paths and experts on FloorPlan1
+
+
+@pytest.mark.parametrize("object_id", [EGG, APPLE, FRIDGE])
+@pytest.mark.parametrize("rule", ["visible", "destination"])
+def test_distances_satisfy_bellman(floorplan1_tasks, object_id, rule):
+    graph = floorplan1_tasks.graph
+    target = floorplan1_tasks.target(object_id)
+    dist = floorplan1_tasks.distances(target, rule)
+    goals = target.goal_states if rule == "visible" else (target.destination,)
+    assert set(np.flatnonzero(dist == 0).tolist()) == set(goals)
+    inf = np.where(dist < 0, np.iinfo(np.int64).max, dist)
+    best_next = inf[graph.next].min(axis=1)
+    far = dist > 0
+    # every state one step from the goal is exactly one further than its best successor ...
+    assert (best_next[far] == dist[far] - 1).all()
+    # ... and a state that cannot reach it only leads to states that cannot either
+    assert (dist[graph.next[dist < 0]] < 0).all()
+    best = expert_actions(graph.next, dist)
+    assert (best[dist == 0] == STOP).all()
+    assert (best[dist < 0] == -1).all()
+    assert (dist[graph.next[far, best[far]]] == dist[far] - 1).all()
+
+
+@pytest.mark.parametrize("object_id", [EGG, APPLE, FRIDGE])
+def test_shortest_trajectory_reaches_the_goal_in_dist_actions(floorplan1_tasks, object_id):
+    graph = floorplan1_tasks.graph
+    target = floorplan1_tasks.target(object_id)
+    dist = floorplan1_tasks.distances(target)
+    for start in target.starts[:10]:
+        actions = shortest_trajectory(graph.next, dist, start)
+        assert len(actions) == dist[start] + 1
+        assert actions[-1] == STOP
+        assert STOP not in actions[:-1]
+        s = start
+        for a in actions[:-1]:
+            assert graph.ok[s, a]
+            s = int(graph.next[s, a])
+        assert s in target.goal_states
+        assert graph.next[s, STOP] == s  # the final Stop keeps it there
+
+
+@pytest.mark.parametrize("object_id", [EGG, APPLE])
+@pytest.mark.parametrize("n_steps", [0, 1, 12, 40])
+def test_walk_back_trajectory_ends_at_the_destination(floorplan1_tasks, object_id, n_steps):
+    graph = floorplan1_tasks.graph
+    target = floorplan1_tasks.target(object_id)
+    actionable = target.kind == "actionable"
+    assert actionable == (object_id == EGG)
+    start, actions = walk_back_trajectory(graph, target.destination, n_steps)
+    assert graph.opened[start] == -1  # the walk starts with every receptacle closed
+    assert actions[-1] == STOP
+    walk = actions[:-1]
+    if actionable:
+        assert walk[-1] == OPEN
+        walk = walk[:-1]
+    assert len(walk) == n_steps
+    assert set(walk) <= {MOVE_AHEAD, MOVE_RIGHT, ROTATE_LEFT}
+    s = start
+    for a in actions:
+        assert graph.ok[s, a], f"{ACTIONS[a]} fails in {graph.pose(s)}"
+        s = int(graph.next[s, a])
+    assert s == target.destination
+
+
+def test_walk_back_prefers_move_back(floorplan1_tasks):
+    # one step back from the destination: MoveBack if it can, so the expert's only move is MoveAhead
+    graph = floorplan1_tasks.graph
+    destination = floorplan1_tasks.target(APPLE).destination
+    back, left = ACTIONS.index("MoveBack"), ACTIONS.index("MoveLeft")
+    start, actions = walk_back_trajectory(graph, destination, 1)
+    if graph.ok[destination, back]:
+        expected = MOVE_AHEAD, graph.next[destination, back]
+    elif graph.ok[destination, left]:
+        expected = MOVE_RIGHT, graph.next[destination, left]
+    else:
+        expected = ROTATE_LEFT, graph.next[destination, ACTIONS.index("RotateRight")]
+    assert (actions, start) == ([expected[0], STOP], expected[1])
+
+
+# ------------------------------------------------------------------------------------------------
+# The task file: splits, targets, fixed episodes
+
+
+@pytest.fixture(scope="module")
+def task_file():
+    return load_task_file()
+
+
+def _actionable_counts(record):
+    return {k: sum(t["kind"] == "actionable" for t in r["targets"]) for k, r in record["kitchens"].items()}
+
+
+def test_task_file_splits_the_30_kitchens(task_file):
+    assert task_file["format"] == TASKS_FORMAT
+    assert task_file["episodes_per_target"] == EPISODES_PER_TARGET == 100
+    assert task_file["min_start_distance"] == MIN_START_DISTANCE
+    assert sorted(task_file["kitchens"], key=KITCHEN_NAMES.index) == list(KITCHEN_NAMES)
+    assert len(KITCHEN_NAMES) == 30
+    splits = task_file["splits"]
+    assert {k: len(v) for k, v in splits.items()} == {"train": 20, "val": 5, "test": 5}
+    everything = splits["train"] + splits["val"] + splits["test"]
+    assert len(set(everything)) == 30
+    assert set(everything) == set(KITCHEN_NAMES)
+
+
+def test_train_kitchens_have_the_most_actionable_targets(task_file):
+    counts = _actionable_counts(task_file)
+    assert task_file["splits"] == split_kitchens(counts)
+    train = task_file["splits"]["train"]
+    rest = [k for k in KITCHEN_NAMES if k not in train]
+    assert min(counts[k] for k in train) >= max(counts[k] for k in rest)
+    # a tie at the boundary goes to the lower FloorPlan number
+    boundary = min(counts[k] for k in train)
+    tied_train = [KITCHEN_NAMES.index(k) for k in train if counts[k] == boundary]
+    tied_rest = [KITCHEN_NAMES.index(k) for k in rest if counts[k] == boundary]
+    if tied_rest:
+        assert max(tied_train) < min(tied_rest)
+
+
+def test_split_kitchens_rules():
+    counts = {k: 0 for k in KITCHEN_NAMES}
+    counts.update({"FloorPlan30": 9, "FloorPlan29": 8})
+    splits = split_kitchens(counts)
+    assert splits["train"][-2:] == ["FloorPlan29", "FloorPlan30"]  # sorted by FloorPlan number
+    assert splits["train"][:18] == list(KITCHEN_NAMES[:18])  # ties: the lower numbers
+    rest = list(KITCHEN_NAMES[18:28])
+    assert splits["val"] == rest[0::2] and splits["test"] == rest[1::2]
+
+
+def test_every_target_has_100_fixed_episodes(task_file):
+    for kitchen, record in task_file["kitchens"].items():
+        assert record["targets"], kitchen
+        ids = [t["object"] for t in record["targets"]]
+        assert len(ids) == len(set(ids)), kitchen
+        for t in record["targets"]:
+            assert len(t["starts"]) == EPISODES_PER_TARGET, (kitchen, t["object"])
+            assert t["kind"] in ("static", "actionable")
+            assert isinstance(t["seen"], bool)
+            assert all(0 <= s < record["n_states"] for s in t["starts"])
+            assert 0 <= t["destination"] < record["n_states"]
+
+
+def test_floorplan1_starts_are_closed_level_and_far(floorplan1_tasks):
+    graph = floorplan1_tasks.graph
+    assert floorplan1_tasks.split == "train"
+    assert len(floorplan1_tasks.targets) > 0
+    for t in floorplan1_tasks.targets:
+        starts = np.array(t.starts)
+        assert len(starts) == EPISODES_PER_TARGET
+        assert (starts < graph.n_closed).all()
+        assert (graph.opened[starts] == -1).all()
+        assert (graph.pitch[starts] == START_PITCH).all()
+        assert (floorplan1_tasks.distances(t, "destination")[starts] >= MIN_START_DISTANCE).all()
+
+
+def test_floorplan1_record_regenerates_identically(graph, task_file):
+    record = kitchen_task_record(graph)
+    committed = task_file["kitchens"]["FloorPlan1"]
+    assert record["n_states"] == committed["n_states"] == graph.n_states
+    assert record["fingerprint"] == committed["fingerprint"]
+    assert record["targets"] == committed["targets"]
+    assert record["dropped"] == committed["dropped"]
+    assert record == committed
+
+
+def test_seen_flags_hold_out_a_quarter_of_each_kind(task_file):
+    for kitchen, record in task_file["kitchens"].items():
+        for kind in ("static", "actionable"):
+            of_kind = [t for t in record["targets"] if t["kind"] == kind]
+            unseen = [t for t in of_kind if not t["seen"]]
+            assert len(unseen) == math.ceil(len(of_kind) / 4), (kitchen, kind)
+
+
+def _fake_targets(n_static, n_actionable):
+    kinds = ["static"] * n_static + ["actionable"] * n_actionable
+    return [Target(i, f"Thing|{i:03d}", "Thing", kind, i, (i,)) for i, kind in enumerate(kinds)]
+
+
+@pytest.mark.parametrize(("n_static", "n_actionable"), [(9, 5), (4, 1), (1, 0), (0, 0), (30, 3)])
+def test_unseen_targets_are_a_quarter_per_kind_rounded_up(n_static, n_actionable):
+    targets = _fake_targets(n_static, n_actionable)
+    unseen = unseen_targets("FloorPlan7", targets)
+    kind = {t.object_id: t.kind for t in targets}
+    per_kind = Counter(kind[o] for o in unseen)
+    assert per_kind["static"] == math.ceil(n_static / 4)
+    assert per_kind["actionable"] == math.ceil(n_actionable / 4)
+    # deterministic, and independent of the order the targets come in
+    shuffled = targets[:]
+    random.Random(1).shuffle(shuffled)
+    assert unseen_targets("FloorPlan7", shuffled) == unseen
+    assert unseen_targets("FloorPlan7", list(reversed(targets))) == unseen
+
+
+def test_unseen_targets_depend_on_the_kitchen():
+    targets = _fake_targets(40, 0)
+    picks = {frozenset(unseen_targets(k, targets)) for k in KITCHEN_NAMES[:5]}
+    assert len(picks) > 1
+
+
+def test_unseen_targets_of_floorplan1_match_the_task_file(graph, task_file):
+    unseen = unseen_targets("FloorPlan1", find_targets(graph))
+    committed = {t["object"] for t in task_file["kitchens"]["FloorPlan1"]["targets"] if not t["seen"]}
+    assert unseen == committed
+
+
+# ------------------------------------------------------------------------------------------------
+# The on-disk cache of state graphs
+
+
+def _assert_same_graph(a, b):
+    assert a.kitchen == b.kitchen
+    assert a.cells == b.cells
+    for name in ("cell", "heading", "pitch", "opened", "next", "ok", "views", "object_vectors"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.visible == b.visible
+
+
+def test_second_call_loads_the_graph_from_disk(graph, monkeypatch):
+    def no_build(*args, **kwargs):
+        raise AssertionError("the cached graph should have been loaded, not rebuilt")
+
+    monkeypatch.setattr(tasks, "build_state_graph", no_build)
+    loaded = tasks.state_graph("FloorPlan1")
+    assert loaded is not graph
+    assert isinstance(loaded.views, np.memmap)  # memory-mapped from the cache file
+    _assert_same_graph(loaded, graph)
+
+
+@pytest.fixture
+def cache_copy(graph, tmp_path):
+    """A private copy of FloorPlan1's cache files, safe to corrupt."""
+    sources = tasks._cache_paths("FloorPlan1", graph.views.shape[1], tasks.cache_dir())
+    copies = tasks._cache_paths("FloorPlan1", graph.views.shape[1], tmp_path)
+    for source, copy in zip(sources, copies):
+        assert source.exists()
+        shutil.copyfile(source, copy)
+    return tmp_path, copies
+
+
+def test_cache_copy_is_readable(graph, cache_copy):
+    root, _ = cache_copy
+    _assert_same_graph(load_graph("FloorPlan1", root=root), graph)
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        "garbage graph",
+        "truncated graph",
+        "garbage views",
+        "truncated views",
+        "views of too few states",
+        "missing views",
+        "missing graph",
+    ],
+)
+def test_damaged_cache_files_are_not_trusted(graph, cache_copy, damage):
+    root, (graph_path, views_path) = cache_copy
+    path = graph_path if "graph" in damage else views_path
+    if damage.startswith("garbage"):
+        path.write_bytes(b"this is not a numpy file" * 100)
+    elif damage.startswith("truncated"):
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif damage.startswith("missing"):
+        path.unlink()
+    else:
+        np.save(views_path, np.zeros((10, *graph.views.shape[1:]), np.uint8))
+    assert load_graph("FloorPlan1", root=root) is None
+
+
+def test_corrupt_cache_is_rebuilt_with_the_same_result(graph, cache_copy, monkeypatch, capsys):
+    root, (graph_path, _) = cache_copy
+    graph_path.write_bytes(b"\x00garbage\xff" * 1000)
+    builds = []
+    real_build = tasks.build_state_graph
+
+    def counting_build(*args, **kwargs):
+        builds.append(args)
+        return real_build(*args, **kwargs)
+
+    monkeypatch.setattr(tasks, "build_state_graph", counting_build)
+    rebuilt = tasks.state_graph("FloorPlan1", root=root)
+    assert len(builds) == 1
+    assert "unreadable" in capsys.readouterr().out
+    _assert_same_graph(rebuilt, graph)
+    # the rebuilt graph replaced the corrupt file, and the session cache was never touched
+    _assert_same_graph(load_graph("FloorPlan1", root=root), graph)
+    _assert_same_graph(load_graph("FloorPlan1"), graph)
+
+
+def test_cache_dir_follows_the_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("KGNAVBENCH_CACHE", str(tmp_path / "k"))
+    assert tasks.cache_dir() == tmp_path / "k"
+    monkeypatch.delenv("KGNAVBENCH_CACHE")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert tasks.cache_dir() == tmp_path / "xdg" / "kgnavbench"
+
+
+# ------------------------------------------------------------------------------------------------
+# Bad task files
+
+
+def _write_gz(path, payload: bytes):
+    path.write_bytes(gzip.compress(payload))
+    return path
+
+
+def _good_record(**changes):
+    record = {"format": TASKS_FORMAT, "splits": {}, "kitchens": {}}
+    record.update(changes)
+    return json.dumps(record).encode()
+
+
+@pytest.mark.parametrize(
+    ("make", "why"),
+    [
+        (lambda p: p.write_bytes(b"\x00\x01 garbage bytes \xff" * 50), "BadGzipFile"),
+        (lambda p: p.write_bytes(tasks.TASKS_FILE.read_bytes()[:5000]), "EOFError"),
+        (lambda p: _write_gz(p, b"{not json"), "JSONDecodeError"),
+        (lambda p: _write_gz(p, b"\xff\xfe\xfa"), "UnicodeDecodeError"),
+        (lambda p: _write_gz(p, b"[1, 2]"), "AttributeError"),
+        (lambda p: _write_gz(p, _good_record(format=TASKS_FORMAT + 1)), f"format {TASKS_FORMAT + 1}"),
+        (lambda p: _write_gz(p, _good_record(format=None)), "format None"),
+        (lambda p: _write_gz(p, _good_record(splits=[])), "no 'splits' table"),
+        (lambda p: _write_gz(p, _good_record(kitchens=None)), "no 'kitchens' table"),
+    ],
+)
+def test_corrupt_task_file_is_reported(tmp_path, make, why):
+    path = tmp_path / "tasks.json.gz"
+    make(path)
+    with pytest.raises(TaskError) as info:
+        load_task_file(path)
+    message = str(info.value)
+    assert str(path) in message
+    assert "corrupt" in message and why in message
+    assert "make tasks" in message
+
+
+def test_missing_task_file_is_reported(tmp_path):
+    path = tmp_path / "nowhere" / "tasks.json.gz"
+    with pytest.raises(TaskError, match="make tasks") as info:
+        load_task_file(path)
+    assert str(path) in str(info.value)
+    assert "missing" in str(info.value)
+
+
+def test_a_good_task_file_elsewhere_loads(tmp_path):
+    path = _write_gz(tmp_path / "tasks.json.gz", _good_record())
+    assert load_task_file(path) == {"format": TASKS_FORMAT, "splits": {}, "kitchens": {}}

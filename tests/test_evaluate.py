@@ -1,0 +1,188 @@
+"""The evaluation protocol (evaluate stage): SPL and the other metrics on hand-computed episodes,
+columns and caps, the oracle's 100/100, determinism and resuming a run."""
+
+import json
+import math
+
+import pytest
+
+from kgnavbench.evaluate import (
+    EpisodeResult,
+    EvalConfig,
+    EvalError,
+    column_of,
+    episode_cap,
+    evaluate,
+    format_summary,
+    metrics,
+    spl_term,
+    split_kitchens,
+    summarize,
+)
+from kgnavbench.tasks import load_task_file
+
+
+def episode(success, path, shortest, column="seen_seen", kind="static", collisions=0, last=None, length=None):
+    return EpisodeResult(
+        kitchen="FloorPlan1",
+        target="Apple|x",
+        kind=kind,
+        column=column,
+        start=0,
+        max_steps=100,
+        success=success,
+        path_length=path,
+        shortest_path=shortest,
+        collisions=collisions,
+        last_view_shows_target=success if last is None else last,
+        episode_length=path + 1 if length is None else length,
+    )
+
+
+def test_spl_on_hand_computed_episodes():
+    # success on the shortest path: 1; success with a detour: L / P; failure: 0
+    assert spl_term(episode(True, 10, 10)) == 1.0
+    assert spl_term(episode(True, 20, 10)) == 0.5
+    assert spl_term(episode(True, 12, 3)) == 0.25
+    assert spl_term(episode(False, 10, 10)) == 0.0
+    m = metrics([episode(True, 10, 10), episode(True, 20, 10), episode(False, 7, 4), episode(True, 12, 3)])
+    assert m.episodes == 4
+    assert m.sr == pytest.approx(75.0)
+    assert m.spl == pytest.approx(100 * (1 + 0.5 + 0 + 0.25) / 4)
+    # the L>=5 bucket leaves out the episodes whose shortest path is 3 and 4
+    assert m.episodes_long == 2
+    assert m.sr_long == pytest.approx(100.0)
+    assert m.spl_long == pytest.approx(75.0)
+
+
+def test_collisions_last_view_and_length_are_means_per_episode():
+    m = metrics(
+        [
+            episode(False, 100, 12, collisions=7, last=True, length=100),
+            episode(True, 15, 12, collisions=1, length=16),
+            episode(False, 3, 12, collisions=0, last=False, length=4),
+        ]
+    )
+    assert m.collisions == pytest.approx(8 / 3)
+    assert m.last_view_shows_target == pytest.approx(200 / 3)
+    assert m.episode_length == pytest.approx(120 / 3)
+    assert m.sr == pytest.approx(100 / 3)
+
+
+def test_an_empty_bucket_is_nan_not_zero():
+    m = metrics([episode(True, 3, 3)])
+    assert m.episodes_long == 0 and math.isnan(m.sr_long) and math.isnan(m.spl_long)
+
+
+def test_summary_groups_by_column_and_kind():
+    results = [
+        episode(True, 10, 10, "seen_seen", "static"),
+        episode(False, 10, 10, "seen_seen", "actionable"),
+        episode(True, 20, 10, "unseen_kitchens", "static"),
+    ]
+    s = summarize(results)
+    assert list(s) == [
+        ("seen_seen", "static"),
+        ("seen_seen", "actionable"),
+        ("seen_seen", "all"),
+        ("unseen_kitchens", "static"),
+        ("unseen_kitchens", "all"),
+        ("all", "all"),
+    ]
+    assert s[("seen_seen", "static")].sr == 100 and s[("seen_seen", "actionable")].sr == 0
+    assert s[("seen_seen", "all")].sr == 50 and s[("unseen_kitchens", "all")].spl == 50
+    table = format_summary(s, "title")
+    assert table.splitlines()[0] == "title"
+    assert "seen kitchens / seen targets" in table and "unseen kitchens" in table
+
+
+def test_columns_and_caps_follow_the_design():
+    assert column_of("train", True) == "seen_seen" and episode_cap("seen_seen") == 100
+    assert column_of("train", False) == "seen_unseen" and episode_cap("seen_unseen") == 1000
+    assert column_of("test", True) == column_of("test", False) == "unseen_kitchens"
+    assert episode_cap("unseen_kitchens") == 1000
+    assert column_of("val", True) == "validation"
+    splits = load_task_file()["splits"]
+    assert split_kitchens("table") == sorted(
+        splits["train"] + splits["test"], key=lambda k: int(k.removeprefix("FloorPlan"))
+    )
+
+
+def test_bad_configs_are_rejected():
+    with pytest.raises(EvalError, match="success rule"):
+        EvalConfig("oracle", success_rule="anywhere")
+    with pytest.raises(EvalError, match="split"):
+        EvalConfig("oracle", split="dev")
+    with pytest.raises(EvalError, match="episodes per target"):
+        EvalConfig("oracle", episodes_per_target=101)
+    with pytest.raises(ValueError, match="FloorPlan99"):
+        EvalConfig("oracle", kitchens=("FloorPlan99",))
+
+
+@pytest.mark.parametrize("rule", ["visible", "destination"])
+def test_the_oracle_scores_sr_100_and_spl_100(tmp_path, floorplan1_tasks, rule):
+    config = EvalConfig("oracle", success_rule=rule, kitchens=("FloorPlan1",), episodes_per_target=3)
+    run = evaluate(config, tmp_path, progress=lambda line: None)
+    assert len(run.results) == 3 * len(floorplan1_tasks.targets)
+    overall = run.summary[("all", "all")]
+    assert overall.sr == 100.0 and overall.spl == pytest.approx(100.0)
+    assert overall.collisions == 0 and overall.last_view_shows_target == 100.0
+    kinds = {r.kind for r in run.results}
+    assert kinds == {"static", "actionable"}
+    for r in run.results:
+        assert r.path_length == r.shortest_path and r.episode_length == r.path_length + 1
+
+
+def test_destination_rule_paths_are_never_shorter(tmp_path, floorplan1_tasks):
+    runs = {
+        rule: evaluate(
+            EvalConfig("oracle", success_rule=rule, kitchens=("FloorPlan1",), episodes_per_target=2),
+            tmp_path,
+            progress=lambda line: None,
+        )
+        for rule in ("visible", "destination")
+    }
+    for a, b in zip(runs["visible"].results, runs["destination"].results, strict=True):
+        assert (a.target, a.start) == (b.target, b.start)
+        assert b.shortest_path >= a.shortest_path
+        assert b.shortest_path >= 10  # starts are at least 10 actions from the destination
+
+
+def test_random_walk_is_deterministic_and_resumes(tmp_path, floorplan1_tasks):
+    config = EvalConfig(
+        "random_walk", stop_ends=False, kitchens=("FloorPlan1",), episodes_per_target=2, seed=3
+    )
+    lines = []
+    first = evaluate(config, tmp_path / "a", progress=lines.append)
+    again = evaluate(config, tmp_path / "b", progress=lambda line: None)
+    assert first.results == again.results
+    assert len(lines) == 1 and "agent-steps/s" in lines[0]
+    # the same config in the same runs dir resumes from the saved kitchen instead of rerunning it
+    resumed = evaluate(config, tmp_path / "a", progress=lines.append)
+    assert resumed.resumed == ["FloorPlan1"] and resumed.results == first.results and len(lines) == 1
+    saved = json.loads((first.directory / "config.json").read_text())
+    assert saved["config"]["method"] == "random_walk" and saved["git_revision"]
+    assert first.directory.name.startswith("random_walk-visible-stop-noop-")
+    # a wrong Stop is a no-op: failed episodes run to the cap
+    for r in first.results:
+        assert r.success or r.episode_length == r.max_steps
+
+
+def test_a_corrupt_results_file_is_reported_not_overwritten(tmp_path, floorplan1_tasks):
+    config = EvalConfig("oracle", kitchens=("FloorPlan1",), episodes_per_target=1)
+    run = evaluate(config, tmp_path, progress=lambda line: None)
+    path = run.directory / "episodes" / "FloorPlan1.jsonl"
+    path.write_text("{not json\n")
+    with pytest.raises(EvalError, match="FloorPlan1.jsonl is corrupt"):
+        evaluate(config, tmp_path, progress=lambda line: None)
+    assert path.read_text() == "{not json\n"
+
+
+def test_another_config_in_the_same_run_directory_is_refused(tmp_path, floorplan1_tasks):
+    config = EvalConfig("oracle", kitchens=("FloorPlan1",), episodes_per_target=1)
+    run = evaluate(config, tmp_path, progress=lambda line: None)
+    saved = json.loads((run.directory / "config.json").read_text())
+    saved["config"]["seed"] = 99
+    (run.directory / "config.json").write_text(json.dumps(saved))
+    with pytest.raises(EvalError, match="another evaluation"):
+        evaluate(config, tmp_path, progress=lambda line: None)
