@@ -430,10 +430,10 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
 
 def describe(config: EvalConfig) -> str:
     stop = "Stop ends the episode" if config.stop_ends else "a wrong Stop is a no-op"
-    rule = "target visible" if config.success_rule == "visible" else "at the destination"
+    rule = "with the target visible" if config.success_rule == "visible" else "at the destination"
     options = ", ".join(f"{k}={v}" for k, v in config.options)
     return (
-        f"{config.method}{f' ({options})' if options else ''} — success: Stop with the {rule}; {stop}; "
+        f"{config.method}{f' ({options})' if options else ''} — success: Stop {rule}; {stop}; "
         f"{config.episodes_per_target} episodes per target, split {config.split}"
     )
 
