@@ -25,16 +25,13 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
 import subprocess
-import tempfile
 import time
-from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from .env import SUCCESS_RULES, parallel_env
-from .kitchens import KITCHEN_NAMES, check_name
+from .kitchens import KITCHEN_NAMES, check_name, write_atomic
 from .plugins import PluginError, PolicySpec, load_plugin
 from .tasks import EPISODES_PER_TARGET, KitchenTasks, load_task_file, load_tasks
 
@@ -343,16 +340,7 @@ def git_revision() -> str:
 
 
 def write_atomic_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, text.encode())
 
 
 def read_results(path: Path) -> list[EpisodeResult]:
@@ -436,10 +424,3 @@ def describe(config: EvalConfig) -> str:
         f"{config.method}{f' ({options})' if options else ''} — success: Stop {rule}; {stop}; "
         f"{config.episodes_per_target} episodes per target, split {config.split}"
     )
-
-
-def load_results(paths: Iterable[Path]) -> list[EpisodeResult]:
-    out = []
-    for p in paths:
-        out.extend(read_results(Path(p)))
-    return out

@@ -17,6 +17,8 @@ from __future__ import annotations
 import gzip
 import json
 import math
+import os
+import tempfile
 from dataclasses import dataclass
 from functools import cache, lru_cache
 from pathlib import Path
@@ -435,10 +437,24 @@ def compile_kitchen(name: str, thor_data: Path | str = DEFAULT_THOR_DATA) -> dic
     }
 
 
+def atomic_write(path: Path, save) -> None:
+    """save(binary file) into a unique temporary file beside `path`, then rename it over `path`: readers
+    never see half a file, concurrent writers never share a temporary file, a failure leaves the old
+    file as it was."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            save(f)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
 def write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
+    atomic_write(path, lambda f: f.write(data))
 
 
 def compile_all(thor_data: Path | str = DEFAULT_THOR_DATA, out_dir: Path = KITCHEN_DIR) -> list[Path]:

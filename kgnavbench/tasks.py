@@ -42,7 +42,6 @@ import json
 import math
 import os
 import random
-import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -51,7 +50,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .kitchens import DATA_DIR, KITCHEN_DIR, KITCHEN_NAMES, check_name, object_types
+from .kitchens import (
+    DATA_DIR,
+    KITCHEN_DIR,
+    KITCHEN_NAMES,
+    atomic_write,
+    check_name,
+    object_types,
+    write_atomic,
+)
 from .render import Visibility, render_views, visibility
 from .world import ACTIONS, HEADINGS, PITCHES, Pose, World
 
@@ -254,20 +261,6 @@ def _cache_paths(kitchen: str, view_size: int, root: Path) -> tuple[Path, Path]:
     return stem.with_suffix(".graph.npz"), Path(f"{stem}.views{view_size}.npy")
 
 
-def _atomic_save(path: Path, save) -> None:
-    """Write through a unique temporary file and rename, so readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            save(f)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_graph(graph: StateGraph, root: Path) -> None:
     graph_path, views_path = _cache_paths(graph.kitchen, graph.views.shape[1], root)
     vis_ptr = np.cumsum([0] + [len(v.visible) for v in graph.visible])
@@ -285,8 +278,8 @@ def save_graph(graph: StateGraph, root: Path) -> None:
         vis_pixels=np.array([p for v in graph.visible for p in v.pixels], np.int64),
         open_target=np.array(open_target, np.int64),
     )
-    _atomic_save(views_path, lambda f: np.save(f, graph.views))
-    _atomic_save(graph_path, lambda f: np.savez(f, **arrays))
+    atomic_write(views_path, lambda f: np.save(f, graph.views))
+    atomic_write(graph_path, lambda f: np.savez(f, **arrays))
 
 
 def load_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = None) -> StateGraph | None:
@@ -559,7 +552,7 @@ def build_task_file(kitchens=KITCHEN_NAMES, path: Path = TASKS_FILE, root: Path 
         "kitchens": per_kitchen,
     }
     text = json.dumps(record, separators=(",", ":"), sort_keys=True).encode()
-    _atomic_save(path, lambda f: f.write(gzip.compress(text, mtime=0)))
+    write_atomic(path, gzip.compress(text, mtime=0))
     load_task_file.cache_clear()
     return record
 
