@@ -23,9 +23,10 @@ table: $(STAMP)
 	$(BIN)/kgnavbench eval --method random_walk --episodes $(EPISODES)
 	$(BIN)/kgnavbench eval --method random_walk --stop-noop --episodes $(EPISODES)
 
-## test: lint and the test suite
+## test: lint (rules and formatting) and the test suite
 test: $(STAMP)
 	$(BIN)/ruff check kgnavbench baselines benchmarks tests docs
+	$(BIN)/ruff format --check kgnavbench baselines benchmarks tests docs
 	$(BIN)/pytest
 
 lint: $(STAMP)
