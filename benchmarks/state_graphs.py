@@ -33,8 +33,8 @@ def main() -> None:
             graph = state_graph(name, root=root)
             targets = find_targets(graph)
             for t in targets:
-                bfs_distances(graph.next, goal_mask(graph.n_states, t.goal_states))
-                bfs_distances(graph.next, goal_mask(graph.n_states, [t.destination]))
+                bfs_distances(graph.next_state, goal_mask(graph.n_states, t.goal_states))
+                bfs_distances(graph.next_state, goal_mask(graph.n_states, [t.destination]))
             n_targets += len(targets)
         total = time.perf_counter() - start
         size = sum(p.stat().st_size for p in root.iterdir()) / 1e9

@@ -36,6 +36,7 @@ from .world import ACTIONS, Pose, World, WorldError, parse_action, parse_pose
 PROG = "kgnavbench"
 MIN_SIZE, MAX_SIZE = 16, 1024
 MAP_MIN_SIZE = 300
+MAX_RANDOM_ACTIONS = 100_000  # a walk prints a line per step: more is a typo, not a walk
 
 
 class UsageError(Exception):
@@ -105,8 +106,9 @@ def parse_actions(text: str, rng: random.Random) -> list[str]:
     for item in items:
         if item.startswith("random:"):
             count = item[len("random:") :]
-            if not re.fullmatch(r"[0-9]+", count):
-                raise UsageError(f"bad --actions item {item!r}: random:N needs a whole number N >= 0")
+            if not re.fullmatch(r"[0-9]+", count) or int(count) > MAX_RANDOM_ACTIONS:
+                limit = f"0 <= N <= {MAX_RANDOM_ACTIONS:,}"
+                raise UsageError(f"bad --actions item {item!r}: random:N needs a whole number {limit}")
             actions.extend(rng.choice(ACTIONS) for _ in range(int(count)))
         else:
             actions.append(parse_action(item))
@@ -215,9 +217,18 @@ PAPER_RANDOM_WALK = "1.56 / 14.86 / 15.84 / 0.23 / 3.25"
 
 
 def _kitchen_list(text: str | None) -> list[str]:
-    if not text:
+    """`--kitchens A,B`: every name known, none twice, none empty; no option: all 30."""
+    if text is None:
         return list(KITCHEN_NAMES)
-    return [check_name(k.strip()) for k in text.split(",") if k.strip()]
+    names = [k.strip() for k in text.split(",")]
+    if not text.strip() or any(not k for k in names):
+        raise UsageError(
+            f"bad --kitchens {text!r}: expected comma-separated kitchens like FloorPlan1,FloorPlan5"
+        )
+    twice = sorted({k for k in names if names.count(k) > 1})
+    if twice:
+        raise UsageError(f"bad --kitchens {text!r}: {', '.join(twice)} named twice")
+    return [check_name(k) for k in names]
 
 
 def cmd_prepare(args: argparse.Namespace) -> int:
@@ -291,7 +302,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         success_rule=args.success_rule,
         stop_ends=not args.stop_noop,
         split=args.split,
-        kitchens=tuple(_kitchen_list(args.kitchens)) if args.kitchens else (),
+        kitchens=tuple(_kitchen_list(args.kitchens)) if args.kitchens is not None else (),
         episodes_per_target=args.episodes,
         seed=args.seed,
     )
@@ -309,6 +320,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     resumed = f"; resumed {len(run.resumed)} kitchens from disk" if run.resumed else ""
     print(f"{len(run.results)} episodes in {run.seconds:.1f} s{steps}{resumed}. Results: {run.directory}")
     return 0
+
+
+def _positive(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if not 1 <= n <= 256:
+        raise argparse.ArgumentTypeError(f"{n} is not in 1..256")
+    return n
 
 
 def _episodes(text: str) -> int:
@@ -385,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
         "use; this does it up front, one process per core.",
     )
     p.add_argument("--kitchens", metavar="A,B", help="comma-separated kitchens (default: all 30)")
-    p.add_argument("--workers", type=int, default=None, help="processes (default: one per core)")
+    p.add_argument("--workers", type=_positive, default=None, help="processes (default: one per core)")
     p.set_defaults(func=cmd_prepare)
 
     p = sub.add_parser(
@@ -412,9 +433,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", required=True, metavar="NAME", help="a plugin (see `kgnavbench methods`)")
     p.add_argument(
         "--success-rule",
-        choices=("visible", "destination"),
-        default="visible",
-        help="success = Stop with the target visible (default) or at its destination only",
+        choices=("destination", "visible"),
+        default="destination",
+        help="success = Stop at the target's destination, the paper's rule (default), or anywhere the "
+        "target is visible (SAVN's)",
     )
     p.add_argument("--stop-noop", action="store_true", help="a Stop that does not succeed is a no-op")
     p.add_argument("--split", choices=SPLITS, default="table", help="table = train + test kitchens (default)")

@@ -23,8 +23,10 @@ Observations (per agent, a dict):
     the state graph's cache, so a step renders nothing. Arrays are read-only views of that cache.
 Rewards: -0.01 every step; +0.01 the first time the agent reaches a goal state; +10 on success.
 Termination: Stop ends the episode (stop_ends=False: a Stop that does not succeed is a no-op).
-    Success = Stop in a state where the target is visible (success_rule="destination": at the
-    destination only). Truncation at max_steps (5000 in training; per episode in evaluation).
+    Success (the paper's, default success_rule="destination") = Stop at the target's destination, the
+    state its image shows; success_rule="visible" (SAVN's) = Stop in any state where the target is
+    visible, receptacle open or not. Goal states (for the +0.01) follow the rule in force.
+    Truncation at max_steps (5000 in training; per episode in evaluation).
 Infos (per agent, every step): success, path_length (actions, Stop not counted), episode_length,
     shortest_path (from the start, under the success rule), collisions, target, target_kind,
     target_seen, last_view_shows_target, state, and expert_action (the BFS-optimal next action:
@@ -39,7 +41,6 @@ Evaluation passes fixed episodes: reset(options={"episodes": [{"target": id, "st
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,7 +107,7 @@ class NavigationEnv(ParallelEnv):
         kitchen: str = "FloorPlan1",
         n_agents: int = 4,
         targets: str | list[str] = "seen",
-        success_rule: str = "visible",
+        success_rule: str = "destination",
         stop_ends: bool = True,
         max_steps: int = TRAINING_MAX_STEPS,
         view_size: int = VIEW_SIZE,
@@ -145,12 +146,10 @@ class NavigationEnv(ParallelEnv):
         self._observation_spaces = {a: self._observation_space for a in self.possible_agents}
         self.np_random, _ = seeding.np_random(None)
 
-    # -- spaces ----------------------------------------------------------------------------------
-    @functools.cache  # noqa: B019 - PettingZoo wants the same object every call
+    # -- spaces (PettingZoo wants the same object on every call: a dict lookup, no cache) -----------
     def observation_space(self, agent: str) -> spaces.Space:
         return self._observation_spaces[agent]
 
-    @functools.cache  # noqa: B019
     def action_space(self, agent: str) -> spaces.Space:
         return self._action_spaces[agent]
 
@@ -170,7 +169,10 @@ class NavigationEnv(ParallelEnv):
                 raise EnvError(f"{unknown} are not targets of {self.kitchen}")
             chosen = [ids[o] for o in targets]
         if not chosen:
-            raise EnvError(f"{self.kitchen} has no {targets} targets")
+            hint = ""
+            if targets == "seen" and self.tasks.split != "train":
+                hint = f": it is a {self.tasks.split} kitchen, all its targets are unseen; use targets='all'"
+            raise EnvError(f"{self.kitchen} has no {targets} targets{hint}")
         return chosen
 
     def _target_tables(self) -> _TargetTables:
@@ -183,7 +185,7 @@ class NavigationEnv(ParallelEnv):
             goal.append(g if self.success_rule == "visible" else np.eye(1, n, t.destination, bool)[0])
             d = self.tasks.distances(t, self.success_rule)
             dist.append(d)
-            expert.append(expert_actions(self.graph.next, d))
+            expert.append(expert_actions(self.graph.next_state, d))
         return _TargetTables(np.array(goal), np.array(dist), np.array(expert), np.array(visible))
 
     def _draw_episode(self) -> tuple[int, int, int]:
@@ -259,7 +261,7 @@ class NavigationEnv(ParallelEnv):
         g = self.graph
         state = self._state[idx]
         row = self._row[idx]
-        nxt = g.next[state, act]
+        nxt = g.next_state[state, act]
         moved_ok = g.ok[state, act]
         stop = act == STOP
         on_goal = self._tables.goal[row, nxt]

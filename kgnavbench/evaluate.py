@@ -25,15 +25,20 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import subprocess
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from .env import SUCCESS_RULES, parallel_env
-from .kitchens import KITCHEN_NAMES, check_name, write_atomic
-from .plugins import PluginError, PolicySpec, load_plugin
-from .tasks import EPISODES_PER_TARGET, KitchenTasks, load_task_file, load_tasks
+from .kitchens import KITCHEN_NAMES, atomic_write, check_name
+from .plugins import Plugin, PluginError, PolicySpec, guarded, load_plugin
+from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks
+from .world import ACTIONS
 
 COLUMNS = ("seen_seen", "seen_unseen", "unseen_kitchens")
 COLUMN_TITLES = {
@@ -46,20 +51,6 @@ KINDS = ("static", "actionable")
 SEEN_CAP, UNSEEN_CAP = 100, 1000
 LONG_PATH = 5
 SPLITS = ("table", "train", "val", "test")
-RESULT_FIELDS = (
-    "kitchen",
-    "target",
-    "kind",
-    "column",
-    "start",
-    "max_steps",
-    "success",
-    "path_length",
-    "shortest_path",
-    "collisions",
-    "last_view_shows_target",
-    "episode_length",
-)
 
 
 class EvalError(ValueError):
@@ -83,7 +74,7 @@ def episode_cap(column: str) -> int:
     return SEEN_CAP if column == "seen_seen" else UNSEEN_CAP
 
 
-def split_kitchens(split: str) -> list[str]:
+def kitchens_of_split(split: str) -> list[str]:
     """The kitchens an evaluation covers: 'table' = train + test (Table I), or one split."""
     splits = load_task_file()["splits"]
     if split == "table":
@@ -101,7 +92,7 @@ class EvalConfig:
 
     method: str
     options: tuple[tuple[str, str], ...] = ()
-    success_rule: str = "visible"
+    success_rule: str = "destination"  # the paper's: Stop at the destination; "visible": SAVN's
     stop_ends: bool = True
     split: str = "table"
     kitchens: tuple[str, ...] = ()  # empty: every kitchen of the split
@@ -119,13 +110,18 @@ class EvalConfig:
             )
         for k in self.kitchens:
             check_name(k)
+        if len(set(self.kitchens)) != len(self.kitchens):
+            raise EvalError(f"a kitchen is named twice in {','.join(self.kitchens)}")
 
     def kitchen_list(self) -> list[str]:
-        return list(self.kitchens) if self.kitchens else split_kitchens(self.split)
+        return list(self.kitchens) if self.kitchens else kitchens_of_split(self.split)
 
-    def run_name(self) -> str:
-        """Deterministic: the method, the rules and a hash of the whole config."""
-        digest = hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:8]
+    def run_name(self, identity: dict | None = None) -> str:
+        """Deterministic: the method, the rules and a hash of everything that decides the results (the
+        `identity` of `run_identity`: this config, the resolved plugin config, the plugin's source, the
+        protocol and the task file)."""
+        text = json.dumps(identity if identity is not None else asdict(self), sort_keys=True, default=str)
+        digest = hashlib.sha256(text.encode()).hexdigest()[:8]
         stop = "stop-ends" if self.stop_ends else "stop-noop"
         return f"{self.method}-{self.success_rule}-{stop}-{self.split}-{digest}"
 
@@ -161,7 +157,7 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
     """Every fixed episode of one kitchen, one env reset per target (an agent per episode)."""
     tasks = load_tasks(kitchen)
     seed = config.seed * 1000 + KITCHEN_NAMES.index(kitchen)  # the same per kitchen, resumable
-    policy = plugin.make_policy(plugin_config, PolicySpec.default(seed, tasks.graph.views.shape[1]))
+    policy = plugin.make_policy(plugin_config, policy_spec(config, seed, tasks.graph.views.shape[1]))
     env = parallel_env(
         kitchen=kitchen,
         n_agents=config.episodes_per_target,
@@ -174,12 +170,12 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
     for column, episodes in kitchen_episodes(tasks, config.episodes_per_target):
         observations, infos = env.reset(options={"episodes": episodes})
         for agent in env.agents:
-            policy.reset(agent)
+            guarded(plugin, "reset()", policy.reset, agent)
         start = {agent: e["start"] for agent, e in zip(env.agents, episodes)}
         finished: dict[str, EpisodeResult] = {}
         while env.agents:
             shown = infos if plugin.privileged else _without_expert(infos)
-            actions = policy.act(observations, shown)
+            actions = guarded(plugin, "act()", policy.act, observations, shown)
             _check_actions(plugin, actions, env.agents)
             observations, _, terminations, truncations, infos = env.step(actions)
             for agent in list(observations):
@@ -208,10 +204,28 @@ def _without_expert(infos: dict) -> dict:
     return {a: {k: v for k, v in i.items() if k != "expert_action"} for a, i in infos.items()}
 
 
-def _check_actions(plugin, actions, agents) -> None:
-    if not isinstance(actions, dict) or set(agents) - set(actions):
-        missing = sorted(set(agents) - set(actions)) if isinstance(actions, dict) else agents
+def policy_spec(config: EvalConfig, seed: int, view_size: int) -> PolicySpec:
+    """What the policy is told before it starts (the hook for a trained method's checkpoint)."""
+    return PolicySpec.default(seed, view_size)
+
+
+def _check_actions(plugin: Plugin, actions, agents) -> None:
+    """act() must return {agent: integer 0..9} for every live agent; anything else names the plugin."""
+    if not isinstance(actions, dict):
+        raise PluginError(f"{plugin.source}: act() returned {type(actions).__name__}, not a dict of actions")
+    missing = [a for a in agents if a not in actions]
+    if missing:
         raise PluginError(f"{plugin.source}: act() must return an action for every agent; missing {missing}")
+    for agent in agents:
+        a = actions[agent]
+        if isinstance(a, np.ndarray) and a.ndim == 0:
+            a = a[()]
+        integer = isinstance(a, (int, np.integer)) and not isinstance(a, (bool, np.bool_))
+        if not integer or not 0 <= a < len(ACTIONS):
+            raise PluginError(
+                f"{plugin.source}: act() returned {a!r} for {agent}; "
+                f"an action is an integer 0..{len(ACTIONS) - 1}"
+            )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -269,6 +283,9 @@ def summarize(results: list) -> dict[tuple[str, str], Metrics]:
     for r in results:
         for key in ((r.column, r.kind), (r.column, "all"), ("all", "all")):
             groups.setdefault(key, []).append(r)
+    for column in {r.column for r in results}:  # a kind with no episodes in a column: an empty cell
+        for kind in KINDS:
+            groups.setdefault((column, kind), [])
     order = [*COLUMNS, "validation", "all"]
     keys = sorted(groups, key=lambda k: (order.index(k[0]), (*KINDS, "all").index(k[1])))
     return {k: metrics(groups[k]) for k in keys}
@@ -288,6 +305,10 @@ def format_summary(summary: dict[tuple[str, str], Metrics], title: str) -> str:
         "last view",
         "length",
     ]
+
+    def cell(value: float, digits: int = 2) -> str:
+        return "–" if math.isnan(value) else f"{value:.{digits}f}"  # no episodes: no number, not 0
+
     rows = []
     for (column, kind), m in summary.items():
         rows.append(
@@ -295,13 +316,13 @@ def format_summary(summary: dict[tuple[str, str], Metrics], title: str) -> str:
                 COLUMN_TITLES.get(column, "all columns"),
                 kind,
                 f"{m.episodes}",
-                f"{m.sr:.2f}",
-                f"{m.spl:.2f}",
-                f"{m.sr_long:.2f}",
-                f"{m.spl_long:.2f}",
-                f"{m.collisions:.2f}",
-                f"{m.last_view_shows_target:.2f}",
-                f"{m.episode_length:.1f}",
+                cell(m.sr),
+                cell(m.spl),
+                cell(m.sr_long),
+                cell(m.spl_long),
+                cell(m.collisions),
+                cell(m.last_view_shows_target),
+                cell(m.episode_length, 1),
             ]
         )
     widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
@@ -339,18 +360,66 @@ def git_revision() -> str:
         return "unknown"
 
 
-def write_atomic_text(path: Path, text: str) -> None:
-    write_atomic(path, text.encode())
+# Result rows as JSON lines: the types every field must have (a file that breaks them is not summed).
+RESULT_TYPES = {
+    "kitchen": str,
+    "target": str,
+    "kind": str,
+    "column": str,
+    "start": int,
+    "max_steps": int,
+    "success": bool,
+    "path_length": int,
+    "shortest_path": int,
+    "collisions": int,
+    "last_view_shows_target": bool,
+    "episode_length": int,
+}
 
 
-def read_results(path: Path) -> list[EpisodeResult]:
-    try:
-        rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-        return [EpisodeResult(**{k: row[k] for k in RESULT_FIELDS}) for row in rows]
-    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
-        raise EvalError(
-            f"results file {path} is corrupt ({type(e).__name__}: {e}); delete it to rerun"
-        ) from e
+def parse_results(text: str, expected: list[tuple[str, int]], kitchen: str) -> list[EpisodeResult]:
+    """The results of one kitchen, checked against the fixed episodes it must hold: `expected` is the
+    (target, start) of every episode in order. Raises ValueError on a truncated or foreign file, a wrong
+    episode count or a wrongly typed field."""
+    lines = text.splitlines()
+    if not text.endswith("\n") or len(lines) != len(expected):
+        raise ValueError(f"{len(lines)} lines for {len(expected)} episodes (truncated or foreign)")
+    results = []
+    for n, (line, (target, start)) in enumerate(zip(lines, expected), start=1):
+        row = json.loads(line)
+        if not isinstance(row, dict) or set(row) != set(RESULT_TYPES):
+            raise ValueError(f"line {n}: fields {sorted(row) if isinstance(row, dict) else row!r}")
+        for key, kind in RESULT_TYPES.items():
+            value = row[key]
+            if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+                raise ValueError(f"line {n}: {key}={value!r} is not {kind.__name__}")
+        if (row["kitchen"], row["target"], row["start"]) != (kitchen, target, start):
+            raise ValueError(f"line {n}: episode {row['target']}@{row['start']} is not {target}@{start}")
+        if row["kind"] not in KINDS or row["column"] not in COLUMN_TITLES:
+            raise ValueError(f"line {n}: kind {row['kind']!r} or column {row['column']!r} is unknown")
+        results.append(EpisodeResult(**row))
+    return results
+
+
+def expected_episodes(kitchen: str, per_target: int) -> list[tuple[str, int]]:
+    """(target, start) of every fixed episode of a kitchen that an evaluation runs, in order."""
+    tasks = load_task_file()["kitchens"][kitchen]
+    return [(t["object"], s) for t in tasks["targets"] for s in t["starts"][:per_target]]
+
+
+def run_identity(config: EvalConfig, plugin: Plugin, plugin_config) -> dict:
+    """Everything that decides an evaluation's numbers; its hash names the run directory."""
+    return {
+        "config": json.loads(json.dumps(asdict(config))),  # as it reads back (tuples are lists)
+        "plugin_config": json.loads(json.dumps(dataclasses.asdict(plugin_config), default=str)),
+        "plugin_source_sha256": hashlib.sha256(plugin.source_bytes()).hexdigest(),
+        "protocol": {
+            "seen_cap": SEEN_CAP,
+            "unseen_cap": UNSEEN_CAP,
+            "long_path": LONG_PATH,
+            "task_file_sha256": hashlib.sha256(TASKS_FILE.read_bytes()).hexdigest(),
+        },
+    }
 
 
 @dataclass
@@ -364,41 +433,70 @@ class EvalRun:
     resumed: list[str] = field(default_factory=list)
 
 
-def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) -> EvalRun:
-    """Run (or resume) an evaluation. Each finished kitchen's results are saved atomically in
-    RUN/episodes/<kitchen>.jsonl; a rerun of the same config skips kitchens already there."""
-    plugin = load_plugin(config.method)
-    plugin_config = plugin.config(dict(config.options))
-    kitchens = config.kitchen_list()
-    directory = Path(runs_dir) / "eval" / config.run_name()
-    saved = {
-        "config": json.loads(json.dumps(asdict(config))),  # as it reads back (tuples are lists)
-        "plugin_config": dataclasses.asdict(plugin_config),
-        "plugin_source": plugin.source,
-        "git_revision": git_revision(),
-    }
+def _write(path: Path, text: str) -> None:
+    try:
+        atomic_write(path, text)
+    except OSError as e:
+        raise EvalError(f"cannot write {path}: {e.strerror or e}; choose another --runs folder") from e
+
+
+def open_run(directory: Path, identity: dict, plugin: Plugin) -> None:
+    """Create the run directory with its config.json, or check that an existing one is this run's.
+    config.json is written once; a run directory that holds anything else is refused."""
     config_path = directory / "config.json"
     if config_path.exists():
         try:
             old = json.loads(config_path.read_text())
         except (OSError, json.JSONDecodeError) as e:
-            raise EvalError(f"{config_path} is corrupt ({e}); delete the run directory to start over") from e
-        if old.get("config") != saved["config"]:
-            raise EvalError(f"{directory} holds another evaluation's results")
-    write_atomic_text(config_path, json.dumps(saved, indent=2) + "\n")
+            raise EvalError(
+                f"{config_path} is unreadable ({e}); delete the run directory to start over"
+            ) from e
+        if not isinstance(old, dict) or old.get("identity") != identity:
+            differ = sorted(
+                k
+                for k in identity
+                if not isinstance(old, dict) or old.get("identity", {}).get(k) != identity[k]
+            )
+            raise EvalError(
+                f"{directory} holds an evaluation with another {', '.join(differ) or 'config'}; "
+                "refusing to mix results (delete it to start over)"
+            )
+        return
+    saved = {"identity": identity, "plugin_source": plugin.source, "git_revision": git_revision()}
+    _write(config_path, json.dumps(saved, indent=2) + "\n")
+
+
+def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) -> EvalRun:
+    """Run (or resume) an evaluation. Each finished kitchen's results are saved atomically in
+    RUN/episodes/<kitchen>.jsonl; a rerun of the same config skips kitchens already there, after
+    checking that they hold exactly the expected episodes (a damaged file is set aside and re-run)."""
+    plugin = load_plugin(config.method)
+    plugin_config = plugin.config(dict(config.options))
+    kitchens = config.kitchen_list()
+    identity = run_identity(config, plugin, plugin_config)
+    directory = Path(runs_dir) / "eval" / config.run_name(identity)
+    open_run(directory, identity, plugin)
 
     run = EvalRun(config, directory)
     start = time.perf_counter()
     for k, kitchen in enumerate(kitchens):
         path = directory / "episodes" / f"{kitchen}.jsonl"
+        expected = expected_episodes(kitchen, config.episodes_per_target)
+        results = None
         if path.exists():
-            results = read_results(path)
-            run.resumed.append(kitchen)
-        else:
+            try:
+                results = parse_results(path.read_text(), expected, kitchen)
+                run.resumed.append(kitchen)
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError, ValueError, TypeError) as e:
+                aside = path.with_name(f"{path.name}.corrupt-{int(time.time())}")
+                path.rename(aside)
+                print(
+                    f"kgnavbench: {path} is damaged ({e}); moved to {aside.name}, re-running", file=sys.stderr
+                )
+        if results is None:
             t0 = time.perf_counter()
             results = evaluate_kitchen(plugin, plugin_config, config, kitchen)
-            text = "".join(json.dumps(asdict(r)) + "\n" for r in results)
-            write_atomic_text(path, text)
+            _write(path, "".join(json.dumps(asdict(r)) + "\n" for r in results))
             steps = sum(r.episode_length for r in results)
             run.steps += steps
             dt = time.perf_counter() - t0
@@ -410,10 +508,18 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
         run.results.extend(results)
     run.seconds = time.perf_counter() - start
     run.summary = summarize(run.results)
-    summary_json = {f"{c}/{k}": asdict(m) for (c, k), m in run.summary.items()}
-    write_atomic_text(directory / "summary.json", json.dumps(summary_json, indent=2) + "\n")
-    write_atomic_text(directory / "table.md", format_summary(run.summary, describe(config)) + "\n")
+    summary_json = summary_as_json(run.summary)
+    _write(directory / "summary.json", json.dumps(summary_json, indent=2) + "\n")
+    _write(directory / "table.md", format_summary(run.summary, describe(config)) + "\n")
     return run
+
+
+def summary_as_json(summary: dict[tuple[str, str], Metrics]) -> dict:
+    """{"column/kind": metrics}, an empty cell's NaN as null (JSON has no NaN)."""
+    return {
+        f"{c}/{k}": {f: (None if isinstance(v, float) and math.isnan(v) else v) for f, v in asdict(m).items()}
+        for (c, k), m in summary.items()
+    }
 
 
 def describe(config: EvalConfig) -> str:

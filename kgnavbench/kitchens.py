@@ -111,11 +111,68 @@ def load_kitchen(name: str) -> Kitchen:
         raise KitchenError(f"kitchen file {path} is corrupt ({type(e).__name__}: {e})") from e
 
 
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _points(v, dims: int) -> bool:
+    return isinstance(v, list) and all(
+        isinstance(p, list) and len(p) == dims and all(_is_number(c) for c in p) for p in v
+    )
+
+
+# field -> check of its value, for the record and for each object (a wrong type is a corrupt file)
+_RECORD_FIELDS = {
+    "name": lambda v: isinstance(v, str),
+    "grid": _is_number,
+    "reachable": lambda v: _points(v, 2) and all(isinstance(c, int) for p in v for c in p),
+    "room": lambda v: isinstance(v, list) and len(v) == 4 and all(map(_is_number, v)),
+    "room_height": _is_number,
+    "objects": lambda v: isinstance(v, list) and all(isinstance(o, dict) for o in v),
+    "placements": lambda v: isinstance(v, list) and all(isinstance(r, list) for r in v),
+}
+_OBJECT_FIELDS = {
+    "id": lambda v: isinstance(v, str),
+    "type": lambda v: isinstance(v, str),
+    "name": lambda v: isinstance(v, str),
+    "center": lambda v: isinstance(v, list) and len(v) == 2 and all(map(_is_number, v)),
+    "position": lambda v: isinstance(v, list) and len(v) == 3 and all(map(_is_number, v)),
+    "footprint": lambda v: isinstance(v, list) and all(_points(poly, 2) for poly in v),
+    "y": lambda v: isinstance(v, list) and len(v) == 2 and all(map(_is_number, v)),
+    "yaw": _is_number,
+    "openable": lambda v: isinstance(v, bool),
+    "pickupable": lambda v: isinstance(v, bool),
+    "receptacle": lambda v: isinstance(v, bool),
+    "parent": lambda v: v is None or isinstance(v, str),
+    "contents": lambda v: isinstance(v, list) and all(isinstance(c, str) for c in v),
+    "hidden": lambda v: isinstance(v, bool),
+    "front": lambda v: v is None or (isinstance(v, list) and all(map(_is_number, v))),
+}
+
+
+def check_record(record: dict) -> None:
+    """Every field of a kitchen record present and of its type; ValueError naming the first that is not."""
+    for key, ok in _RECORD_FIELDS.items():
+        if key not in record:
+            raise ValueError(f"no {key!r}")
+        if not ok(record[key]):
+            raise ValueError(f"{key!r} has the wrong type or shape")
+    for n, o in enumerate(record["objects"]):
+        for key, ok in _OBJECT_FIELDS.items():
+            if key not in o:
+                raise ValueError(f"object {n} has no {key!r}")
+            if not ok(o[key]):
+                raise ValueError(
+                    f"object {n} ({o.get('id')}): {key!r}={o[key]!r} has the wrong type or shape"
+                )
+
+
 def kitchen_from_record(record: dict) -> Kitchen:
     if not isinstance(record, dict):
         raise ValueError(f"a {type(record).__name__}, not a kitchen record")
     if record.get("format") != FORMAT_VERSION:
         raise ValueError(f"format {record.get('format')!r}, expected {FORMAT_VERSION}")
+    check_record(record)
     objects = tuple(
         KitchenObject(
             id=o["id"],
@@ -437,10 +494,13 @@ def compile_kitchen(name: str, thor_data: Path | str = DEFAULT_THOR_DATA) -> dic
     }
 
 
-def atomic_write(path: Path, save) -> None:
-    """save(binary file) into a unique temporary file beside `path`, then rename it over `path`: readers
-    never see half a file, concurrent writers never share a temporary file, a failure leaves the old
-    file as it was."""
+def atomic_write(path: Path, content) -> None:
+    """Write `content` (bytes, text, or a function save(binary file)) into a unique temporary file beside
+    `path`, then rename it over `path`: readers never see half a file, concurrent writers never share a
+    temporary file, a failure leaves the old file as it was. The one atomic writer of the package."""
+    if isinstance(content, str):
+        content = content.encode()
+    save = (lambda f: f.write(content)) if isinstance(content, bytes) else content
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     try:
@@ -453,10 +513,6 @@ def atomic_write(path: Path, save) -> None:
         raise
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    atomic_write(path, lambda f: f.write(data))
-
-
 def compile_all(thor_data: Path | str = DEFAULT_THOR_DATA, out_dir: Path = KITCHEN_DIR) -> list[Path]:
     thor = Path(thor_data)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -465,11 +521,11 @@ def compile_all(thor_data: Path | str = DEFAULT_THOR_DATA, out_dir: Path = KITCH
         record = compile_kitchen(name, thor)
         path = out_dir / f"{name}.json.gz"
         text = json.dumps(record, separators=(",", ":"), sort_keys=True).encode()
-        write_atomic(path, gzip.compress(text, mtime=0))
+        atomic_write(path, gzip.compress(text, mtime=0))
         written.append(path)
     with open(thor / "rl_ai2thor/object_types_data.json") as f:
         types = sorted(json.load(f))
-    write_atomic(out_dir.parent / "object_types.json", json.dumps(types, indent=0).encode())
+    atomic_write(out_dir.parent / "object_types.json", json.dumps(types, indent=0).encode())
     load_kitchen.cache_clear()
     return written
 

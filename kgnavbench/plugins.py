@@ -1,7 +1,10 @@
 """Stage 6 — plugins: the baseline plugin interface and its registry.
 
-A plugin is one Python file in `baselines/` (the file name is the method name, `--method NAME`), or
-a module registered under the `kgnavbench.baselines` entry-point group by another package. It defines
+A plugin is one Python file (the file name is the method name, `--method NAME`) in one of
+  * the shipped baselines: the repository's `baselines/`, installed as the package `kgnavbench_baselines`;
+  * `./baselines/` of the working directory: drop a file there to add a method of your own;
+  * or a module registered under the `kgnavbench.baselines` entry-point group by another package.
+It defines
 
     DESCRIPTION = "one line: what the method is"          # required
     PRIVILEGED = False                                    # optional; True: may read infos["expert_action"]
@@ -28,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import importlib.util
+import math
 import sys
 import typing
 from dataclasses import dataclass
@@ -39,7 +43,8 @@ from .kitchens import object_types
 from .tasks import VIEW_SIZE
 from .world import ACTIONS
 
-BASELINES_DIR = Path(__file__).resolve().parent.parent / "baselines"
+SHIPPED_PACKAGE = "kgnavbench_baselines"  # the repository's baselines/ folder, installed under this name
+SOURCE_BASELINES_DIR = Path(__file__).resolve().parent.parent / "baselines"  # a source checkout's
 ENTRY_POINT_GROUP = "kgnavbench.baselines"
 
 
@@ -75,11 +80,18 @@ class Plugin:
         """The typed config with `options` (strings, as typed on the command line) applied."""
         return make_config(self, options or {})
 
-    def make_policy(self, config, spec: PolicySpec):
+    def source_bytes(self) -> bytes:
+        """The plugin's source code (its file, or its entry point's module file): part of a run's hash."""
+        path = (
+            self.source if not self.source.startswith("entry point") else getattr(self.module, "__file__", "")
+        )
         try:
-            policy = self.module.make_policy(config, spec)
-        except Exception as e:
-            raise PluginError(f"{self.source}: make_policy failed: {type(e).__name__}: {e}") from e
+            return Path(path).read_bytes()
+        except (OSError, TypeError):
+            return self.source.encode()
+
+    def make_policy(self, config, spec: PolicySpec):
+        policy = guarded(self, "make_policy", self.module.make_policy, config, spec)
         missing = [m for m in ("reset", "act") if not callable(getattr(policy, m, None))]
         if missing:
             raise PluginError(
@@ -89,18 +101,56 @@ class Plugin:
         return policy
 
 
+def guarded(plugin: Plugin, what: str, function, *args):
+    """Call plugin code; whatever it raises (sys.exit too) becomes a PluginError naming its file. Only
+    Ctrl-C goes through untouched."""
+    try:
+        return function(*args)
+    except KeyboardInterrupt:
+        raise
+    except PluginError:
+        raise
+    except KeyError as e:
+        if e.args == ("expert_action",) and not plugin.privileged:
+            raise PluginError(
+                f"{plugin.source}: {what} read infos['expert_action'], which only a plugin with "
+                "PRIVILEGED = True may read"
+            ) from e
+        raise PluginError(f"{plugin.source}: {what} failed: KeyError: {e}") from e
+    except BaseException as e:  # noqa: BLE001 - a plugin's SystemExit must not end the benchmark silently
+        raise PluginError(f"{plugin.source}: {what} failed: {type(e).__name__}: {e}") from e
+
+
 @dataclass
 class _NoOptions:
     """A plugin without a Config class takes no options."""
 
 
+def baseline_dirs() -> list[Path]:
+    """Folders of plugin files, later ones winning a name: the shipped baselines (installed as the
+    `kgnavbench_baselines` package, or the source checkout's baselines/), then ./baselines of the
+    working directory, where a researcher drops a plugin of their own."""
+    dirs = []
+    try:
+        spec = importlib.util.find_spec(SHIPPED_PACKAGE)
+        dirs += [Path(p) for p in (spec.submodule_search_locations or [])] if spec else []
+    except (ImportError, ValueError):
+        pass
+    dirs += [SOURCE_BASELINES_DIR, Path.cwd() / "baselines"]
+    unique: list[Path] = []
+    for d in dirs:
+        if d.is_dir() and d.resolve() not in [u.resolve() for u in unique]:
+            unique.append(d)
+    return unique
+
+
 def plugin_sources() -> dict[str, str]:
-    """Method name -> where its plugin comes from (a baselines/ file or an entry point)."""
+    """Method name -> where its plugin comes from (an entry point of another package, or a file)."""
     found = {}
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         found[ep.name] = f"entry point {ep.name} = {ep.value}"
-    if BASELINES_DIR.is_dir():
-        for path in sorted(BASELINES_DIR.glob("*.py")):
+    for folder in baseline_dirs():
+        for path in sorted(folder.glob("*.py")):
             if not path.name.startswith("_"):
                 found[path.stem] = str(path)
     return dict(sorted(found.items()))
@@ -121,11 +171,13 @@ def load_plugin(name: str) -> Plugin:
             (ep,) = [e for e in entry_points(group=ENTRY_POINT_GROUP) if e.name == name]
             module = ep.load()
         else:
-            spec = importlib.util.spec_from_file_location(f"kgnavbench_baselines.{name}", source)
+            spec = importlib.util.spec_from_file_location(f"kgnavbench_plugin_{name}", source)
             module = importlib.util.module_from_spec(spec)
             sys.modules[spec.name] = module  # dataclasses look their module up here
             spec.loader.exec_module(module)
-    except Exception as e:
+    except KeyboardInterrupt:
+        raise
+    except BaseException as e:  # noqa: BLE001 - sys.exit() at import is a broken plugin, too
         raise PluginError(f"{source}: failed to import: {type(e).__name__}: {e}") from e
     return check_plugin(name, source, module)
 
@@ -157,23 +209,46 @@ def make_config(plugin: Plugin, options: dict[str, str]):
             known = ", ".join(fields) or "none"
             raise PluginError(f"{plugin.source}: unknown option {key!r} for {plugin.name} (options: {known})")
         values[key] = _convert(plugin, key, hints.get(key, str), text)
-    return plugin.config_class(**values)
+    try:
+        return plugin.config_class(**values)
+    except KeyboardInterrupt:
+        raise
+    except BaseException as e:  # noqa: BLE001 - a Config whose __post_init__ rejects a value
+        raise PluginError(f"{plugin.source}: bad options {options}: {type(e).__name__}: {e}") from e
+
+
+OPTION_TYPES = (bool, int, float, str)
 
 
 def _convert(plugin: Plugin, key: str, kind, text):
+    """An option's text as its field's type: bool, int, float, str, or one of them `| None` ("none")."""
     if not isinstance(text, str):
         return text
+    args = typing.get_args(kind)
+    optional = type(None) in args
+    if optional:
+        rest = [a for a in args if a is not type(None)]
+        if len(rest) != 1:
+            raise PluginError(f"{plugin.source}: option {key} has type {kind}, which options cannot take")
+        if text.lower() == "none":
+            return None
+        kind = rest[0]
+    if kind not in OPTION_TYPES:
+        raise PluginError(
+            f"{plugin.source}: option {key} has type {kind}; options take bool, int, float, str (or X | None)"
+        )
+    name = kind.__name__ + (" or none" if optional else "")
+    if kind is bool:
+        if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
+            raise PluginError(f"{plugin.source}: option {key}={text!r} is not a {name} (true/false)")
+        return text.lower() in ("true", "1", "yes")
     try:
-        if kind is bool:
-            if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
-                raise ValueError("not a boolean")
-            return text.lower() in ("true", "1", "yes")
-        if kind in (int, float, str):
-            return kind(text)
-        return text
+        value = kind(text)
     except ValueError as e:
-        kind_name = getattr(kind, "__name__", kind)
-        raise PluginError(f"{plugin.source}: option {key}={text!r} is not a {kind_name}") from e
+        raise PluginError(f"{plugin.source}: option {key}={text!r} is not a {name}") from e
+    if kind is float and not math.isfinite(value):
+        raise PluginError(f"{plugin.source}: option {key}={text!r} is not a finite number")
+    return value
 
 
 def parse_options(items: list[str]) -> dict[str, str]:

@@ -416,7 +416,9 @@ def top_down_map(
         if world.is_hidden(i):
             continue
         for shape in world.object_shapes[i]:
-            if shape not in world.shape_info:
+            # an open receptacle's closed box is out of the space (its shell and door are drawn below):
+            # drawing it would hide what is inside, the Egg in the open Fridge
+            if shape not in world.shape_info or shape.space is None:
                 continue
             pts = np.array([px(v.x, v.y) for v in shape.get_vertices()], np.int32)
             cv2.fillConvexPoly(img, pts, type_colour(o.type), cv2.LINE_AA)

@@ -39,9 +39,9 @@ from __future__ import annotations
 import gzip
 import hashlib
 import json
-import math
 import os
 import random
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -57,7 +57,6 @@ from .kitchens import (
     atomic_write,
     check_name,
     object_types,
-    write_atomic,
 )
 from .render import Visibility, render_views, visibility
 from .world import ACTIONS, HEADINGS, PITCHES, Pose, World
@@ -81,12 +80,12 @@ MOVES = tuple(ACTIONS.index(a) for a in ("MoveAhead", "MoveBack", "MoveRight", "
 VIEW_SIZE = 84
 GRAPH_VERSION = 2  # bump when build_state_graph changes what it produces
 N_TRAIN_KITCHENS, N_VAL_KITCHENS = 20, 5
-UNSEEN_TARGET_FRACTION = 0.25
+SEEN_TARGETS_PER_KITCHEN = 7  # the paper: 140 training targets in 20 training kitchens
 EPISODES_PER_TARGET = 100
 MIN_START_DISTANCE = 10
 START_PITCH = 0
 TASKS_FILE = DATA_DIR / "tasks.json.gz"
-TASKS_FORMAT = 1
+TASKS_FORMAT = 2  # 2: the paper's target split (7 seen per training kitchen, actionable first)
 # The paper's walk-back expert: from the destination try these in order, then reverse the walk.
 WALK_BACK_PRIORITY = ("MoveBack", "MoveLeft", "RotateRight")
 REVERSE = {"MoveBack": "MoveAhead", "MoveLeft": "MoveRight", "RotateRight": "RotateLeft"}
@@ -111,7 +110,7 @@ class StateGraph:
     heading: np.ndarray  # (S,) degrees
     pitch: np.ndarray  # (S,) degrees
     opened: np.ndarray  # (S,) object index of the open receptacle, -1 for none
-    next: np.ndarray  # (S, 10) next state per action (ACTIONS order)
+    next_state: np.ndarray  # (S, 10) the state each action leads to (ACTIONS order)
     ok: np.ndarray  # (S, 10) whether the action succeeds (False: a collision or a failed action)
     visible: list[Visibility]  # (S,)
     views: np.ndarray  # (S, V, V, 3) uint8 RGB, the view of every state
@@ -146,7 +145,7 @@ class StateGraph:
         )
         if opened < 0:
             return closed
-        s = int(self.next[closed, OPEN])
+        s = int(self.next_state[closed, OPEN])
         if self.opened[s] != opened:
             raise TaskError(f"OpenObject at {pose} does not open object {opened}")
         return s
@@ -220,7 +219,7 @@ def build_state_graph(world: World, view_size: int = VIEW_SIZE) -> StateGraph:
         heading=np.array([p.heading for p in closed + base], np.int64),
         pitch=np.array([p.pitch for p in closed + base], np.int64),
         opened=np.array([-1] * n_closed + [r for _, r in open_states], np.int64),
-        next=nxt,
+        next_state=nxt,
         ok=ok,
         visible=list(vis) + open_vis,
         views=np.concatenate(views),
@@ -271,7 +270,7 @@ def save_graph(graph: StateGraph, root: Path) -> None:
         heading=graph.heading,
         pitch=graph.pitch,
         opened=graph.opened,
-        next=graph.next,
+        next=graph.next_state,
         ok=graph.ok,
         vis_ptr=vis_ptr,
         vis_obj=np.array([i for v in graph.visible for i in v.visible], np.int64),
@@ -309,16 +308,21 @@ def load_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = Non
             heading=a["heading"],
             pitch=a["pitch"],
             opened=a["opened"],
-            next=a["next"],
+            next_state=a["next"],
             ok=a["ok"],
             visible=visible,
             views=views,
         )
-        if views.shape != (graph.n_states, view_size, view_size, 3) or graph.next.shape[0] != graph.n_states:
+        if (
+            views.shape != (graph.n_states, view_size, view_size, 3)
+            or graph.next_state.shape[0] != graph.n_states
+        ):
             raise ValueError(f"views {views.shape} do not match {graph.n_states} states")
         return graph
     except Exception as e:  # noqa: BLE001 - any unreadable cache file is rebuilt, not trusted
-        print(f"kgnavbench: cached state graph of {kitchen} is unreadable ({e}); rebuilding it")
+        print(
+            f"kgnavbench: cached state graph of {kitchen} is unreadable ({e}); rebuilding it", file=sys.stderr
+        )
         return None
 
 
@@ -329,7 +333,13 @@ def state_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = No
     graph = load_graph(kitchen, view_size, root)
     if graph is None:
         graph = build_state_graph(World(kitchen), view_size)
-        save_graph(graph, root)
+        try:
+            save_graph(graph, root)
+        except OSError as e:
+            raise TaskError(
+                f"cannot write the state-graph cache in {root} ({e.strerror or e}); "
+                "set KGNAVBENCH_CACHE to a writable folder"
+            ) from e
     return graph
 
 
@@ -413,7 +423,7 @@ def walk_back_trajectory(graph: StateGraph, destination: int, n_steps: int) -> t
             a = ACTIONS.index(name)
             if graph.ok[s, a]:
                 walk.append(name)
-                s = int(graph.next[s, a])
+                s = int(graph.next_state[s, a])
                 break
     actions = [ACTIONS.index(REVERSE[name]) for name in reversed(walk)]
     return s, actions + ([OPEN] if opened else []) + [STOP]
@@ -443,20 +453,19 @@ def find_targets(graph: StateGraph) -> list[Target]:
             seen_in.setdefault(i, []).append(s)
     targets = []
     for i, o in enumerate(world.objects):
-        states = seen_in.get(i, [])
+        goal_states = seen_in.get(i, [])  # open or closed: wherever the target is in view
         if start_hidden[i]:
-            kind = "actionable"
-            states = [s for s in states if graph.opened[s] >= 0]
+            kind = "actionable"  # visible only with its receptacle open
+            candidates = goal_states
         elif o.pickupable or o.type in COMMON_ITEMS:
-            kind = "static"
-            states = [s for s in states if graph.opened[s] < 0]
+            kind = "static"  # its image shows it with nothing open
+            candidates = [s for s in goal_states if graph.opened[s] < 0]
         else:
             continue
-        if not states:
+        if not candidates:
             continue
-
-        destination = min(states, key=lambda s, i=i, o=o: _nearness(graph, s, i, o.center))
-        targets.append(Target(i, o.id, o.type, kind, destination, tuple(states)))
+        destination = min(candidates, key=lambda s, i=i, o=o: _nearness(graph, s, i, o.center))
+        targets.append(Target(i, o.id, o.type, kind, destination, tuple(goal_states)))
     return targets
 
 
@@ -483,21 +492,20 @@ def split_kitchens(actionable_counts: dict[str, int]) -> dict[str, list[str]]:
     }
 
 
-def unseen_targets(kitchen: str, targets: list[Target]) -> set[str]:
-    """Per kind, ceil(n / 4) targets chosen by a shuffle seeded with '<kitchen>/<kind>'."""
-    unseen = set()
-    for kind in ("static", "actionable"):
-        ids = sorted(t.object_id for t in targets if t.kind == kind)
-        random.Random(f"{kitchen}/{kind}").shuffle(ids)
-        unseen.update(ids[: math.ceil(len(ids) * UNSEEN_TARGET_FRACTION)])
-    return unseen
+def seen_targets(kitchen: str, targets: list[Target]) -> set[str]:
+    """The paper's training targets of a training kitchen: every actionable target, then static targets
+    by a shuffle seeded with the kitchen name until there are SEEN_TARGETS_PER_KITCHEN."""
+    seen = {t.object_id for t in targets if t.kind == "actionable"}
+    static = sorted(t.object_id for t in targets if t.kind == "static")
+    random.Random(kitchen).shuffle(static)
+    return seen | set(static[: max(0, SEEN_TARGETS_PER_KITCHEN - len(seen))])
 
 
 def episode_starts(graph: StateGraph, target: Target, n: int = EPISODES_PER_TARGET) -> list[int]:
     """n closed states at pitch 0 that do not show the target, at least MIN_START_DISTANCE actions from
     the target's destination (the place its image shows), drawn (without replacement while there are
     enough) by a generator seeded with the target."""
-    dist = bfs_distances(graph.next, goal_mask(graph.n_states, [target.destination]))
+    dist = bfs_distances(graph.next_state, goal_mask(graph.n_states, [target.destination]))
     closed = np.arange(graph.n_states) < graph.n_closed
     unseen = ~goal_mask(graph.n_states, target.goal_states)  # the target is not in view at the start
     candidates = np.flatnonzero(closed & unseen & (graph.pitch == START_PITCH) & (dist >= MIN_START_DISTANCE))
@@ -510,10 +518,11 @@ def episode_starts(graph: StateGraph, target: Target, n: int = EPISODES_PER_TARG
     return [int(s) for s in picks]
 
 
-def kitchen_task_record(graph: StateGraph) -> dict:
-    """One kitchen's entry of the task file: its targets, seen or not, and their fixed episodes."""
+def kitchen_task_record(graph: StateGraph, training: bool) -> dict:
+    """One kitchen's entry of the task file: its targets, seen or not, and their fixed episodes. Only a
+    training kitchen has seen targets; every target of a validation or test kitchen is unseen."""
     targets = find_targets(graph)
-    unseen = unseen_targets(graph.kitchen, targets)
+    seen = seen_targets(graph.kitchen, targets) if training else set()
     records, dropped = [], []
     for t in targets:
         starts = episode_starts(graph, t)
@@ -525,7 +534,7 @@ def kitchen_task_record(graph: StateGraph) -> dict:
                 "object": t.object_id,
                 "type": t.type,
                 "kind": t.kind,
-                "seen": t.object_id not in unseen,
+                "seen": t.object_id in seen,
                 "destination": t.destination,
                 "starts": starts,
             }
@@ -542,17 +551,19 @@ def build_task_file(kitchens=KITCHEN_NAMES, path: Path = TASKS_FILE, root: Path 
     """Build (or load) every state graph, then write the splits, targets and fixed episodes."""
     for kitchen, seconds, n in build_all(kitchens, root=root):
         print(f"{kitchen:12s} {n:5d} states ({seconds:5.1f} s)", flush=True)
-    per_kitchen = {k: kitchen_task_record(state_graph(k, root=root)) for k in kitchens}
-    counts = {k: sum(t["kind"] == "actionable" for t in r["targets"]) for k, r in per_kitchen.items()}
+    graphs = {k: state_graph(k, root=root) for k in kitchens}
+    counts = {k: sum(t.kind == "actionable" for t in find_targets(g)) for k, g in graphs.items()}
+    splits = split_kitchens(counts) if len(kitchens) == len(KITCHEN_NAMES) else {"train": list(kitchens)}
     record = {
         "format": TASKS_FORMAT,
         "episodes_per_target": EPISODES_PER_TARGET,
         "min_start_distance": MIN_START_DISTANCE,
-        "splits": split_kitchens(counts) if len(kitchens) == len(KITCHEN_NAMES) else {},
-        "kitchens": per_kitchen,
+        "seen_targets_per_kitchen": SEEN_TARGETS_PER_KITCHEN,
+        "splits": splits,
+        "kitchens": {k: kitchen_task_record(g, k in splits["train"]) for k, g in graphs.items()},
     }
     text = json.dumps(record, separators=(",", ":"), sort_keys=True).encode()
-    write_atomic(path, gzip.compress(text, mtime=0))
+    atomic_write(path, gzip.compress(text, mtime=0))
     load_task_file.cache_clear()
     return record
 
@@ -615,7 +626,7 @@ class KitchenTasks:
                 return t
         raise TaskError(f"{object_id!r} is not a target of {self.kitchen}")
 
-    def distances(self, target: TaskTarget, success_rule: str = "visible") -> np.ndarray:
+    def distances(self, target: TaskTarget, success_rule: str = "destination") -> np.ndarray:
         """BFS distance of every state to the target's goal states ('visible': any state that shows
         it; 'destination': the destination only). Computed once per target and rule."""
         if success_rule not in ("visible", "destination"):
@@ -623,8 +634,31 @@ class KitchenTasks:
         key = (target.object_id, success_rule)
         if key not in self._dist:
             goals = target.goal_states if success_rule == "visible" else (target.destination,)
-            self._dist[key] = bfs_distances(self.graph.next, goal_mask(self.graph.n_states, goals))
+            self._dist[key] = bfs_distances(self.graph.next_state, goal_mask(self.graph.n_states, goals))
         return self._dist[key]
+
+
+TARGET_FIELDS = {"object": str, "type": str, "kind": str, "seen": bool, "destination": int, "starts": list}
+
+
+def check_task_entry(entry: dict) -> None:
+    """A kitchen's entry of the task file has every field, each of its type (ValueError otherwise)."""
+    if not isinstance(entry, dict) or not isinstance(entry.get("n_states"), int):
+        raise ValueError("no n_states")
+    if not isinstance(entry.get("targets"), list):
+        raise ValueError("no targets list")
+    for n, t in enumerate(entry["targets"]):
+        if not isinstance(t, dict):
+            raise ValueError(f"target {n} is not a record")
+        for key, kind in TARGET_FIELDS.items():
+            if key not in t:
+                raise ValueError(f"target {n} has no {key!r}")
+            if not isinstance(t[key], kind) or (kind is int and isinstance(t[key], bool)):
+                raise ValueError(f"target {n}: {key}={t[key]!r} is not {kind.__name__}")
+        if t["kind"] not in ("static", "actionable"):
+            raise ValueError(f"target {n}: kind {t['kind']!r}")
+        if not t["starts"] or not all(isinstance(s, int) and not isinstance(s, bool) for s in t["starts"]):
+            raise ValueError(f"target {n}: starts must be state numbers")
 
 
 def load_tasks(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = None) -> KitchenTasks:
@@ -634,6 +668,10 @@ def load_tasks(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = Non
     entry = record["kitchens"].get(kitchen)
     if entry is None:
         raise TaskError(f"{kitchen} is not in the task file {TASKS_FILE}; run `make tasks`")
+    try:
+        check_task_entry(entry)
+    except (KeyError, TypeError, ValueError) as e:
+        raise TaskError(f"the task file's entry for {kitchen} is malformed ({e}); run `make tasks`") from e
     graph = state_graph(kitchen, view_size, root)
     if entry["n_states"] != graph.n_states:
         raise TaskError(

@@ -392,6 +392,9 @@ def _inside(p, poly) -> bool:
     return True
 
 
+MAX_COORDINATE = 1000.0  # metres or degrees; a kitchen is a few metres across
+
+
 def parse_pose(text: str, kitchen: Kitchen) -> Pose:
     """'x,z,heading,pitch' in metres and degrees (heading and pitch optional)."""
     try:
@@ -402,6 +405,8 @@ def parse_pose(text: str, kitchen: Kitchen) -> Pose:
         raise WorldError(f"bad pose {text!r}: expected x,z[,heading[,pitch]] like 0.25,-1.5,90,0") from None
     if not all(math.isfinite(v) for v in parts) or any(v != int(v) for v in parts[2:]):
         raise WorldError(f"bad pose {text!r}: x and z must be finite, heading and pitch whole degrees")
+    if any(abs(v) > MAX_COORDINATE for v in parts):
+        raise WorldError(f"bad pose {text!r}: numbers beyond {MAX_COORDINATE:g} lie outside any kitchen")
     g = kitchen.grid
     cell = (round(parts[0] / g), round(parts[1] / g))
     if abs(cell[0] * g - parts[0]) > 1e-6 or abs(cell[1] * g - parts[1]) > 1e-6:

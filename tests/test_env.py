@@ -162,7 +162,7 @@ def test_a_fresh_graph_is_read_only_too(floorplan1_tasks):
 
     g = floorplan1_tasks.graph
     fresh = StateGraph(
-        g.kitchen, g.world, g.cells, g.cell, g.heading, g.pitch, g.opened, g.next, g.ok, g.visible,
+        g.kitchen, g.world, g.cells, g.cell, g.heading, g.pitch, g.opened, g.next_state, g.ok, g.visible,
         np.array(g.views),
     )  # fmt: skip
     assert not fresh.views.flags.writeable and not fresh.object_vectors.flags.writeable
@@ -262,7 +262,7 @@ def test_fewer_episodes_than_agents_leaves_the_rest_out(make_env, tasks):
 
 
 def test_egg_needs_the_fridge_open(make_env, graph, egg_start):
-    env = make_env()
+    env = make_env(success_rule="visible")  # the egg in view from the open fridge, anywhere
     # Stop in front of the closed fridge: the egg is not visible, the episode ends in failure
     _, infos = env.reset(options={"episodes": [episode(EGG, egg_start)]})
     assert infos[A0]["shortest_path"] == 1
@@ -279,7 +279,7 @@ def test_egg_needs_the_fridge_open(make_env, graph, egg_start):
     (r1, term1, _, info1), (r2, term2, _, info2) = run(env, [OPEN, STOP])
     assert r1 == pytest.approx(STEP_REWARD + ARRIVAL_REWARD) == pytest.approx(0.0)
     assert not term1 and info1["last_view_shows_target"] and info1["expert_action"] == STOP
-    assert info1["state"] == graph.next[egg_start, OPEN]
+    assert info1["state"] == graph.next_state[egg_start, OPEN]
     assert graph.opened[info1["state"]] == graph.world.index(FRIDGE)
     assert r2 == pytest.approx(STEP_REWARD + SUCCESS_REWARD)
     assert term2 and info2["success"] is True
@@ -288,7 +288,7 @@ def test_egg_needs_the_fridge_open(make_env, graph, egg_start):
 
 
 def test_the_arrival_reward_is_paid_once(make_env, egg_start):
-    env = make_env()
+    env = make_env(success_rule="visible")  # the egg in view from the open fridge, anywhere
     env.reset(options={"episodes": [episode(EGG, egg_start)]})
     # open (arrive), look away (the fridge closes), look back, open again (no second bonus), Stop
     steps = run(env, [OPEN, ROTATE_RIGHT, ROTATE_LEFT, OPEN, STOP])
@@ -301,8 +301,8 @@ def test_the_arrival_reward_is_paid_once(make_env, egg_start):
 
 
 def test_no_arrival_reward_when_starting_on_a_goal(make_env, tasks, graph, egg_start):
-    env = make_env()
-    open_state = int(graph.next[egg_start, OPEN])
+    env = make_env(success_rule="visible")  # the egg in view from the open fridge, anywhere
+    open_state = int(graph.next_state[egg_start, OPEN])
     _, infos = env.reset(options={"episodes": [episode(EGG, open_state)]})
     assert infos[A0]["shortest_path"] == 0 and infos[A0]["expert_action"] == STOP
     [(reward, term, _, info)] = run(env, [STOP])
@@ -311,7 +311,7 @@ def test_no_arrival_reward_when_starting_on_a_goal(make_env, tasks, graph, egg_s
 
 
 def test_a_wrong_stop_is_a_no_op_without_stop_ends(make_env, graph, egg_start):
-    env = make_env(stop_ends=False)
+    env = make_env(stop_ends=False, success_rule="visible")
     env.reset(options={"episodes": [episode(EGG, egg_start)]})
     for k in range(1, 4):
         [(reward, term, trunc, info)] = run(env, [STOP])
@@ -329,7 +329,7 @@ def test_a_wrong_stop_is_a_no_op_without_stop_ends(make_env, graph, egg_start):
 
 def test_destination_rule_needs_the_destination(make_env, tasks, graph, egg_start):
     egg = tasks.target(EGG)
-    open_state = int(graph.next[egg_start, OPEN])
+    open_state = int(graph.next_state[egg_start, OPEN])
     assert open_state in egg.goal_states and open_state != egg.destination  # shows the egg, elsewhere
 
     env = make_env(success_rule="destination")
@@ -433,7 +433,7 @@ def test_the_training_max_steps_applies_without_fixed_episodes(make_env):
 
 
 def test_a_stop_on_the_last_step_terminates_rather_than_truncates(make_env, egg_start):
-    env = make_env()
+    env = make_env(success_rule="visible")  # the egg in view from the open fridge, anywhere
     env.reset(options={"episodes": [episode(EGG, egg_start, max_steps=2)]})
     (_, _, trunc1, _), (_, term2, trunc2, info2) = run(env, [OPEN, STOP])
     assert not trunc1
@@ -446,7 +446,7 @@ def test_a_stop_on_the_last_step_terminates_rather_than_truncates(make_env, egg_
 
 def test_any_action_but_stop_closes_the_receptacle(make_env, graph, egg_start):
     env = make_env(stop_ends=False)
-    open_state = int(graph.next[egg_start, OPEN])
+    open_state = int(graph.next_state[egg_start, OPEN])
     fridge = graph.world.index(FRIDGE)
     for a in range(len(ACTIONS)):
         env.reset(options={"episodes": [episode(EGG, egg_start)]})
@@ -459,7 +459,7 @@ def test_any_action_but_stop_closes_the_receptacle(make_env, graph, egg_start):
             assert info["state"] == open_state  # closes and reopens the same fridge
         else:
             assert graph.opened[info["state"]] == -1, ACTIONS[a]
-            assert info["state"] == graph.next[egg_start, a]  # as from the closed twin
+            assert info["state"] == graph.next_state[egg_start, a]  # as from the closed twin
             assert info["last_view_shows_target"] is False
 
 

@@ -14,9 +14,9 @@ from kgnavbench.evaluate import (
     episode_cap,
     evaluate,
     format_summary,
+    kitchens_of_split,
     metrics,
     spl_term,
-    split_kitchens,
     summarize,
 )
 from kgnavbench.tasks import load_task_file
@@ -86,14 +86,18 @@ def test_summary_groups_by_column_and_kind():
         ("seen_seen", "actionable"),
         ("seen_seen", "all"),
         ("unseen_kitchens", "static"),
+        ("unseen_kitchens", "actionable"),  # no episodes: an empty cell, shown as "–"
         ("unseen_kitchens", "all"),
         ("all", "all"),
     ]
     assert s[("seen_seen", "static")].sr == 100 and s[("seen_seen", "actionable")].sr == 0
     assert s[("seen_seen", "all")].sr == 50 and s[("unseen_kitchens", "all")].spl == 50
+    assert s[("unseen_kitchens", "actionable")].episodes == 0
     table = format_summary(s, "title")
     assert table.splitlines()[0] == "title"
     assert "seen kitchens / seen targets" in table and "unseen kitchens" in table
+    empty = [line for line in table.splitlines() if "unseen kitchens" in line and "actionable" in line]
+    assert len(empty) == 1 and empty[0].count(" – |") == 7 and " 0.00 " not in empty[0]
 
 
 def test_columns_and_caps_follow_the_design():
@@ -103,7 +107,7 @@ def test_columns_and_caps_follow_the_design():
     assert episode_cap("unseen_kitchens") == 1000
     assert column_of("val", True) == "validation"
     splits = load_task_file()["splits"]
-    assert split_kitchens("table") == sorted(
+    assert kitchens_of_split("table") == sorted(
         splits["train"] + splits["test"], key=lambda k: int(k.removeprefix("FloorPlan"))
     )
 
@@ -150,7 +154,12 @@ def test_destination_rule_paths_are_never_shorter(tmp_path, floorplan1_tasks):
 
 def test_random_walk_is_deterministic_and_resumes(tmp_path, floorplan1_tasks):
     config = EvalConfig(
-        "random_walk", stop_ends=False, kitchens=("FloorPlan1",), episodes_per_target=2, seed=3
+        "random_walk",
+        success_rule="visible",
+        stop_ends=False,
+        kitchens=("FloorPlan1",),
+        episodes_per_target=2,
+        seed=3,
     )
     lines = []
     first = evaluate(config, tmp_path / "a", progress=lines.append)
@@ -161,28 +170,97 @@ def test_random_walk_is_deterministic_and_resumes(tmp_path, floorplan1_tasks):
     resumed = evaluate(config, tmp_path / "a", progress=lines.append)
     assert resumed.resumed == ["FloorPlan1"] and resumed.results == first.results and len(lines) == 1
     saved = json.loads((first.directory / "config.json").read_text())
-    assert saved["config"]["method"] == "random_walk" and saved["git_revision"]
+    assert saved["identity"]["config"]["method"] == "random_walk" and saved["git_revision"]
+    assert saved["identity"]["plugin_config"] == {"stop_probability": 0.1}
     assert first.directory.name.startswith("random_walk-visible-stop-noop-")
     # a wrong Stop is a no-op: failed episodes run to the cap
     for r in first.results:
         assert r.success or r.episode_length == r.max_steps
 
 
-def test_a_corrupt_results_file_is_reported_not_overwritten(tmp_path, floorplan1_tasks):
+DAMAGE = {
+    "not json": lambda text: "{not json\n",
+    "truncated": lambda text: text[: len(text) // 2],
+    "a line missing": lambda text: "".join(text.splitlines(keepends=True)[:-1]),
+    "a line twice": lambda text: text + text.splitlines(keepends=True)[0],
+    "a string for a bool": lambda text: text.replace('"success": true', '"success": "yes"', 1),
+    "a float for an int": lambda text: text.replace('"collisions": 0', '"collisions": 0.0', 1),
+    "another episode": lambda text: text.replace('"start": ', '"start": 1', 1),
+}
+
+
+@pytest.mark.parametrize("damage", sorted(DAMAGE))
+def test_a_damaged_results_file_is_set_aside_and_rerun_never_summed(
+    tmp_path, floorplan1_tasks, damage, capsys
+):
     config = EvalConfig("oracle", kitchens=("FloorPlan1",), episodes_per_target=1)
     run = evaluate(config, tmp_path, progress=lambda line: None)
     path = run.directory / "episodes" / "FloorPlan1.jsonl"
-    path.write_text("{not json\n")
-    with pytest.raises(EvalError, match="FloorPlan1.jsonl is corrupt"):
-        evaluate(config, tmp_path, progress=lambda line: None)
-    assert path.read_text() == "{not json\n"
+    good = path.read_text()
+    bad = DAMAGE[damage](good)
+    assert bad != good
+    path.write_text(bad)
+    again = evaluate(config, tmp_path, progress=lambda line: None)
+    assert again.resumed == [] and again.results == run.results  # re-run, not summed
+    assert path.read_text() == good
+    aside = list(path.parent.glob("FloorPlan1.jsonl.corrupt-*"))
+    assert len(aside) == 1 and aside[0].read_text() == bad  # the damaged file is kept, not lost
+    assert "is damaged" in capsys.readouterr().err
+
+
+def test_config_json_is_written_once(tmp_path, floorplan1_tasks):
+    config = EvalConfig("oracle", kitchens=("FloorPlan1",), episodes_per_target=1)
+    run = evaluate(config, tmp_path, progress=lambda line: None)
+    path = run.directory / "config.json"
+    text, mtime = path.read_text(), path.stat().st_mtime_ns
+    evaluate(config, tmp_path, progress=lambda line: None)
+    assert path.read_text() == text and path.stat().st_mtime_ns == mtime
+
+
+def test_the_run_name_hashes_the_plugins_source_and_resolved_config(tmp_path, monkeypatch, floorplan1_tasks):
+    from kgnavbench import plugins
+
+    local = tmp_path / "baselines"
+    local.mkdir()
+    monkeypatch.chdir(tmp_path)
+    source = (plugins.SOURCE_BASELINES_DIR / "random_walk.py").read_text()
+    (local / "walker.py").write_text(source)
+    config = EvalConfig("walker", kitchens=("FloorPlan1",), episodes_per_target=1)
+    first = evaluate(config, tmp_path / "runs", progress=lambda line: None)
+    # the same options, another default in the plugin: its resolved config and source differ
+    (local / "walker.py").write_text(
+        source.replace("stop_probability: float = 0.1", "stop_probability: float = 0.5")
+    )
+    second = evaluate(config, tmp_path / "runs", progress=lambda line: None)
+    assert second.directory != first.directory and second.resumed == []
+    # only a comment changed: the source differs, so does the run
+    (local / "walker.py").write_text(source + "# a comment\n")
+    third = evaluate(config, tmp_path / "runs", progress=lambda line: None)
+    assert third.directory not in (first.directory, second.directory)
+    # the identical plugin again: the first run resumes
+    (local / "walker.py").write_text(source)
+    assert evaluate(config, tmp_path / "runs", progress=lambda line: None).resumed == ["FloorPlan1"]
 
 
 def test_another_config_in_the_same_run_directory_is_refused(tmp_path, floorplan1_tasks):
     config = EvalConfig("oracle", kitchens=("FloorPlan1",), episodes_per_target=1)
     run = evaluate(config, tmp_path, progress=lambda line: None)
     saved = json.loads((run.directory / "config.json").read_text())
-    saved["config"]["seed"] = 99
+    saved["identity"]["config"]["seed"] = 99
     (run.directory / "config.json").write_text(json.dumps(saved))
-    with pytest.raises(EvalError, match="another evaluation"):
+    with pytest.raises(EvalError, match="another config"):
         evaluate(config, tmp_path, progress=lambda line: None)
+    saved["identity"]["config"]["seed"] = 0
+    saved["identity"]["plugin_source_sha256"] = "0" * 64
+    (run.directory / "config.json").write_text(json.dumps(saved))
+    with pytest.raises(EvalError, match="another plugin_source_sha256"):
+        evaluate(config, tmp_path, progress=lambda line: None)
+
+
+def test_a_runs_folder_that_cannot_be_written_is_an_error_and_writes_nothing(tmp_path, floorplan1_tasks):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    config = EvalConfig("oracle", kitchens=("FloorPlan1",), episodes_per_target=1)
+    with pytest.raises(EvalError, match="cannot write .*config.json"):
+        evaluate(config, blocker / "runs", progress=lambda line: None)
+    assert blocker.read_text() == "not a folder"

@@ -47,6 +47,15 @@ def test_unknown_method_lists_the_available_ones():
         load_plugin("nope")
 
 
+@pytest.fixture
+def local(tmp_path, monkeypatch):
+    """A researcher's ./baselines folder: the working directory's plugins join the shipped ones."""
+    folder = tmp_path / "baselines"
+    folder.mkdir()
+    monkeypatch.chdir(tmp_path)
+    return folder
+
+
 BROKEN = {
     "no_policy": ('DESCRIPTION = "x"\n', r"no_policy.py is not a kgnavbench plugin: make_policy"),
     "no_description": ("def make_policy(config, spec):\n    return None\n", r"DESCRIPTION"),
@@ -59,17 +68,16 @@ BROKEN = {
 
 
 @pytest.mark.parametrize("name", sorted(BROKEN))
-def test_a_broken_plugin_gets_an_error_naming_the_file(tmp_path, monkeypatch, name):
+def test_a_broken_plugin_gets_an_error_naming_the_file(local, name):
     source, message = BROKEN[name]
-    (tmp_path / f"{name}.py").write_text(source)
-    monkeypatch.setattr(plugins, "BASELINES_DIR", tmp_path)
+    (local / f"{name}.py").write_text(source)
     with pytest.raises(PluginError, match=message) as e:
         load_plugin(name)
     assert f"{name}.py" in str(e.value)
 
 
-def test_a_policy_without_act_is_refused(tmp_path, monkeypatch):
-    (tmp_path / "lazy.py").write_text(
+def test_a_policy_without_act_is_refused(local):
+    (local / "lazy.py").write_text(
         textwrap.dedent(
             """
             DESCRIPTION = "a policy that forgot act()"
@@ -81,38 +89,35 @@ def test_a_policy_without_act_is_refused(tmp_path, monkeypatch):
             """
         )
     )
-    monkeypatch.setattr(plugins, "BASELINES_DIR", tmp_path)
     plugin = load_plugin("lazy")
     with pytest.raises(PluginError, match=r"lazy.py: the policy from make_policy has no act\(\)"):
         plugin.make_policy(plugin.config(), PolicySpec.default())
 
 
-def test_a_copied_random_walk_is_a_new_method(tmp_path, monkeypatch):
+def test_a_copied_random_walk_is_a_new_method(local):
     # the README's worked example: copy baselines/random_walk.py, rename, change
-    source = (plugins.BASELINES_DIR / "random_walk.py").read_text()
-    (tmp_path / "never_stop.py").write_text(
+    source = (plugins.SOURCE_BASELINES_DIR / "random_walk.py").read_text()
+    (local / "never_stop.py").write_text(
         source.replace("stop_probability: float = 0.1", "stop_probability: float = 0.0")
     )
-    monkeypatch.setattr(plugins, "BASELINES_DIR", tmp_path)
     plugin = load_plugin("never_stop")
     policy = plugin.make_policy(plugin.config(), PolicySpec.default())
     acts = policy.act({f"a{i}": {} for i in range(500)}, {})
     assert 9 not in acts.values()
 
 
-def test_the_readme_worked_example_runs(tmp_path, monkeypatch, floorplan1_tasks):
+def test_the_readme_worked_example_runs(local, floorplan1_tasks):
     from kgnavbench.evaluate import EvalConfig, evaluate
 
-    readme = (plugins.BASELINES_DIR.parent / "README.md").read_text()
+    readme = (plugins.SOURCE_BASELINES_DIR.parent / "README.md").read_text()
     intro = readme.index("`baselines/never_stop.py`:")
     start = readme.index("```python\n", intro) + len("```python\n")
-    (tmp_path / "never_stop.py").write_text(readme[start : readme.index("```", start)])
-    monkeypatch.setattr(plugins, "BASELINES_DIR", tmp_path)
+    (local / "never_stop.py").write_text(readme[start : readme.index("```", start)])
     plugin = load_plugin("never_stop")
     assert plugin.config({"turn_probability": "0.5"}).turn_probability == 0.5
     config = EvalConfig(
         "never_stop", options=(("turn_probability", "0.5"),), kitchens=("FloorPlan1",), episodes_per_target=1
     )
-    run = evaluate(config, tmp_path / "runs", progress=lambda line: None)
+    run = evaluate(config, local.parent / "runs", progress=lambda line: None)
     assert run.results and not any(r.success for r in run.results)  # it never stops, so never succeeds
     assert all(r.episode_length == r.max_steps for r in run.results)

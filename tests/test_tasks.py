@@ -2,7 +2,6 @@
 
 import gzip
 import json
-import math
 import random
 import shutil
 from collections import Counter
@@ -16,6 +15,7 @@ from kgnavbench.tasks import (
     EPISODES_PER_TARGET,
     MIN_START_DISTANCE,
     OPEN,
+    SEEN_TARGETS_PER_KITCHEN,
     START_PITCH,
     STOP,
     TASKS_FORMAT,
@@ -28,9 +28,9 @@ from kgnavbench.tasks import (
     kitchen_task_record,
     load_graph,
     load_task_file,
+    seen_targets,
     shortest_trajectory,
     split_kitchens,
-    unseen_targets,
     walk_back_trajectory,
 )
 from kgnavbench.world import ACTIONS, Pose, World
@@ -93,7 +93,7 @@ def test_transitions_follow_the_world(graph):
                 continue
             world.teleport(graph.pose(s))
             result = world.step(action)
-            assert graph.pose(int(graph.next[s, a])) == result.pose
+            assert graph.pose(int(graph.next_state[s, a])) == result.pose
             assert bool(graph.ok[s, a]) == result.success
 
 
@@ -101,13 +101,13 @@ def test_open_states_close_on_any_action_but_stop(graph):
     opened = np.flatnonzero(graph.opened >= 0)
     assert len(opened) > 0
     for o in opened[:50]:
-        assert graph.next[o, STOP] == o
-        assert graph.next[o, OPEN] == o
+        assert graph.next_state[o, STOP] == o
+        assert graph.next_state[o, OPEN] == o
         closed = graph.state_of(graph.pose(int(o)))
         for a in range(len(ACTIONS)):
             if a not in (STOP, OPEN):
-                assert graph.next[o, a] == graph.next[closed, a]
-                assert graph.opened[graph.next[o, a]] == -1
+                assert graph.next_state[o, a] == graph.next_state[closed, a]
+                assert graph.opened[graph.next_state[o, a]] == -1
 
 
 def test_the_egg_is_an_actionable_target_seen_only_with_the_fridge_open(graph):
@@ -117,12 +117,31 @@ def test_the_egg_is_an_actionable_target_seen_only_with_the_fridge_open(graph):
     fridge = graph.world.index(FRIDGE)
     assert all(graph.opened[s] == fridge for s in egg.goal_states)
     assert egg.destination in egg.goal_states
-    dist = bfs_distances(graph.next, np.isin(np.arange(graph.n_states), egg.goal_states))
+    dist = bfs_distances(graph.next_state, np.isin(np.arange(graph.n_states), egg.goal_states))
     start = graph.state_of(Pose((-4, 4), 270, 30))
     assert dist[start] == 1  # OpenObject, facing the fridge
-    assert dist[graph.next[start, ACTIONS.index("RotateRight")]] == 2
+    assert dist[graph.next_state[start, ACTIONS.index("RotateRight")]] == 2
     assert targets[FRIDGE].kind == "static"
-    assert all(graph.opened[s] == -1 for s in targets[FRIDGE].goal_states)
+    assert graph.opened[targets[FRIDGE].destination] == -1  # its image shows it closed
+
+
+def test_goal_states_are_every_state_showing_the_target_open_or_closed(graph):
+    """A static target seen while some receptacle is open (the Fridge itself after OpenObject in
+    front of it) is in view there, so that state is a goal state too."""
+    targets = find_targets(graph)
+    fridge = {t.object_id: t for t in targets}[FRIDGE]
+    index = graph.world.index(FRIDGE)
+    showing = [s for s in range(graph.n_states) if index in graph.visible[s].visible]
+    assert sorted(fridge.goal_states) == showing
+    open_goals = [s for s in fridge.goal_states if graph.opened[s] >= 0]
+    assert open_goals, "the open Fridge is in view in front of it"
+    # every target: goal states are exactly the states where it is visible
+    for t in targets:
+        assert set(t.goal_states) == set(np.flatnonzero(graph.visible_mask(t.object_index)).tolist())
+    static_open = [
+        t for t in targets if t.kind == "static" and any(graph.opened[s] >= 0 for s in t.goal_states)
+    ]
+    assert len(static_open) >= 20
 
 
 # ------------------------------------------------------------------------------------------------
@@ -138,16 +157,16 @@ def test_distances_satisfy_bellman(floorplan1_tasks, object_id, rule):
     goals = target.goal_states if rule == "visible" else (target.destination,)
     assert set(np.flatnonzero(dist == 0).tolist()) == set(goals)
     inf = np.where(dist < 0, np.iinfo(np.int64).max, dist)
-    best_next = inf[graph.next].min(axis=1)
+    best_next = inf[graph.next_state].min(axis=1)
     far = dist > 0
     # every state one step from the goal is exactly one further than its best successor ...
     assert (best_next[far] == dist[far] - 1).all()
     # ... and a state that cannot reach it only leads to states that cannot either
-    assert (dist[graph.next[dist < 0]] < 0).all()
-    best = expert_actions(graph.next, dist)
+    assert (dist[graph.next_state[dist < 0]] < 0).all()
+    best = expert_actions(graph.next_state, dist)
     assert (best[dist == 0] == STOP).all()
     assert (best[dist < 0] == -1).all()
-    assert (dist[graph.next[far, best[far]]] == dist[far] - 1).all()
+    assert (dist[graph.next_state[far, best[far]]] == dist[far] - 1).all()
 
 
 @pytest.mark.parametrize("object_id", [EGG, APPLE, FRIDGE])
@@ -156,16 +175,16 @@ def test_shortest_trajectory_reaches_the_goal_in_dist_actions(floorplan1_tasks, 
     target = floorplan1_tasks.target(object_id)
     dist = floorplan1_tasks.distances(target)
     for start in target.starts[:10]:
-        actions = shortest_trajectory(graph.next, dist, start)
+        actions = shortest_trajectory(graph.next_state, dist, start)
         assert len(actions) == dist[start] + 1
         assert actions[-1] == STOP
         assert STOP not in actions[:-1]
         s = start
         for a in actions[:-1]:
             assert graph.ok[s, a]
-            s = int(graph.next[s, a])
+            s = int(graph.next_state[s, a])
         assert s in target.goal_states
-        assert graph.next[s, STOP] == s  # the final Stop keeps it there
+        assert graph.next_state[s, STOP] == s  # the final Stop keeps it there
 
 
 @pytest.mark.parametrize("object_id", [EGG, APPLE])
@@ -187,7 +206,7 @@ def test_walk_back_trajectory_ends_at_the_destination(floorplan1_tasks, object_i
     s = start
     for a in actions:
         assert graph.ok[s, a], f"{ACTIONS[a]} fails in {graph.pose(s)}"
-        s = int(graph.next[s, a])
+        s = int(graph.next_state[s, a])
     assert s == target.destination
 
 
@@ -198,11 +217,11 @@ def test_walk_back_prefers_move_back(floorplan1_tasks):
     back, left = ACTIONS.index("MoveBack"), ACTIONS.index("MoveLeft")
     start, actions = walk_back_trajectory(graph, destination, 1)
     if graph.ok[destination, back]:
-        expected = MOVE_AHEAD, graph.next[destination, back]
+        expected = MOVE_AHEAD, graph.next_state[destination, back]
     elif graph.ok[destination, left]:
-        expected = MOVE_RIGHT, graph.next[destination, left]
+        expected = MOVE_RIGHT, graph.next_state[destination, left]
     else:
-        expected = ROTATE_LEFT, graph.next[destination, ACTIONS.index("RotateRight")]
+        expected = ROTATE_LEFT, graph.next_state[destination, ACTIONS.index("RotateRight")]
     assert (actions, start) == ([expected[0], STOP], expected[1])
 
 
@@ -283,7 +302,7 @@ def test_floorplan1_starts_are_closed_level_and_far(floorplan1_tasks):
 
 
 def test_floorplan1_record_regenerates_identically(graph, task_file):
-    record = kitchen_task_record(graph)
+    record = kitchen_task_record(graph, training=True)
     committed = task_file["kitchens"]["FloorPlan1"]
     assert record["n_states"] == committed["n_states"] == graph.n_states
     assert record["fingerprint"] == committed["fingerprint"]
@@ -292,12 +311,20 @@ def test_floorplan1_record_regenerates_identically(graph, task_file):
     assert record == committed
 
 
-def test_seen_flags_hold_out_a_quarter_of_each_kind(task_file):
-    for kitchen, record in task_file["kitchens"].items():
-        for kind in ("static", "actionable"):
-            of_kind = [t for t in record["targets"] if t["kind"] == kind]
-            unseen = [t for t in of_kind if not t["seen"]]
-            assert len(unseen) == math.ceil(len(of_kind) / 4), (kitchen, kind)
+def test_the_papers_split_140_seen_targets_all_actionable_first(task_file):
+    """20 training kitchens x 7 seen targets; every actionable target of a training kitchen is seen;
+    validation and test kitchens have no seen targets (the "unseen kitchens" column)."""
+    splits = task_file["splits"]
+    total = 0
+    for kitchen in splits["train"]:
+        targets = task_file["kitchens"][kitchen]["targets"]
+        seen = [t for t in targets if t["seen"]]
+        assert len(seen) == SEEN_TARGETS_PER_KITCHEN, kitchen
+        assert all(t["seen"] for t in targets if t["kind"] == "actionable"), kitchen
+        total += len(seen)
+    assert total == 140
+    for kitchen in splits["val"] + splits["test"]:
+        assert not any(t["seen"] for t in task_file["kitchens"][kitchen]["targets"]), kitchen
 
 
 def _fake_targets(n_static, n_actionable):
@@ -305,31 +332,31 @@ def _fake_targets(n_static, n_actionable):
     return [Target(i, f"Thing|{i:03d}", "Thing", kind, i, (i,)) for i, kind in enumerate(kinds)]
 
 
-@pytest.mark.parametrize(("n_static", "n_actionable"), [(9, 5), (4, 1), (1, 0), (0, 0), (30, 3)])
-def test_unseen_targets_are_a_quarter_per_kind_rounded_up(n_static, n_actionable):
+@pytest.mark.parametrize(("n_static", "n_actionable"), [(9, 5), (4, 1), (1, 0), (0, 0), (30, 3), (2, 9)])
+def test_seen_targets_are_the_actionable_ones_then_seeded_static_ones(n_static, n_actionable):
     targets = _fake_targets(n_static, n_actionable)
-    unseen = unseen_targets("FloorPlan7", targets)
+    seen = seen_targets("FloorPlan7", targets)
     kind = {t.object_id: t.kind for t in targets}
-    per_kind = Counter(kind[o] for o in unseen)
-    assert per_kind["static"] == math.ceil(n_static / 4)
-    assert per_kind["actionable"] == math.ceil(n_actionable / 4)
+    per_kind = Counter(kind[o] for o in seen)
+    assert per_kind["actionable"] == n_actionable
+    assert per_kind["static"] == min(n_static, max(0, SEEN_TARGETS_PER_KITCHEN - n_actionable))
     # deterministic, and independent of the order the targets come in
     shuffled = targets[:]
     random.Random(1).shuffle(shuffled)
-    assert unseen_targets("FloorPlan7", shuffled) == unseen
-    assert unseen_targets("FloorPlan7", list(reversed(targets))) == unseen
+    assert seen_targets("FloorPlan7", shuffled) == seen
+    assert seen_targets("FloorPlan7", list(reversed(targets))) == seen
 
 
-def test_unseen_targets_depend_on_the_kitchen():
+def test_seen_targets_depend_on_the_kitchen():
     targets = _fake_targets(40, 0)
-    picks = {frozenset(unseen_targets(k, targets)) for k in KITCHEN_NAMES[:5]}
+    picks = {frozenset(seen_targets(k, targets)) for k in KITCHEN_NAMES[:5]}
     assert len(picks) > 1
 
 
-def test_unseen_targets_of_floorplan1_match_the_task_file(graph, task_file):
-    unseen = unseen_targets("FloorPlan1", find_targets(graph))
-    committed = {t["object"] for t in task_file["kitchens"]["FloorPlan1"]["targets"] if not t["seen"]}
-    assert unseen == committed
+def test_seen_targets_of_floorplan1_match_the_task_file(graph, task_file):
+    seen = seen_targets("FloorPlan1", find_targets(graph))
+    committed = {t["object"] for t in task_file["kitchens"]["FloorPlan1"]["targets"] if t["seen"]}
+    assert seen == committed
 
 
 # ------------------------------------------------------------------------------------------------
@@ -339,7 +366,7 @@ def test_unseen_targets_of_floorplan1_match_the_task_file(graph, task_file):
 def _assert_same_graph(a, b):
     assert a.kitchen == b.kitchen
     assert a.cells == b.cells
-    for name in ("cell", "heading", "pitch", "opened", "next", "ok", "views", "object_vectors"):
+    for name in ("cell", "heading", "pitch", "opened", "next_state", "ok", "views", "object_vectors"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     assert a.visible == b.visible
 
@@ -410,7 +437,8 @@ def test_corrupt_cache_is_rebuilt_with_the_same_result(graph, cache_copy, monkey
     monkeypatch.setattr(tasks, "build_state_graph", counting_build)
     rebuilt = tasks.state_graph("FloorPlan1", root=root)
     assert len(builds) == 1
-    assert "unreadable" in capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "unreadable" in err and not out  # stdout stays clean for --json
     _assert_same_graph(rebuilt, graph)
     # the rebuilt graph replaced the corrupt file, and the session cache was never touched
     _assert_same_graph(load_graph("FloorPlan1", root=root), graph)
