@@ -263,7 +263,14 @@ def cmd_targets(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"kitchen": tasks.kitchen, "split": tasks.split, "targets": rows}, indent=1))
         return 0
-    print(f"{tasks.kitchen} ({tasks.split} split): {len(rows)} targets")
+    n_seen = sum(r["seen"] for r in rows)
+    if tasks.split == "train":
+        who = f"{n_seen} seen (training) targets, {len(rows) - n_seen} unseen"
+    else:
+        who = (
+            "every one unseen (Table I's unseen kitchens)" if tasks.split == "test" else "all for validation"
+        )
+    print(f"{tasks.kitchen} ({tasks.split} split): {len(rows)} targets, {who}")
     headers = ["target", "kind", "seen", "destination x,z,heading,pitch", "opened", "goal states", "episodes"]
     table = [
         [

@@ -332,8 +332,9 @@ def state_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = No
     root = root or cache_dir()
     graph = load_graph(kitchen, view_size, root)
     if graph is None:
-        graph = build_state_graph(World(kitchen), view_size)
-        try:
+        try:  # fail before a minute of building, not after
+            root.mkdir(parents=True, exist_ok=True)
+            graph = build_state_graph(World(kitchen), view_size)
             save_graph(graph, root)
         except OSError as e:
             raise TaskError(

@@ -1,0 +1,240 @@
+"""Every bad input the README promises a clear error for: one line `kgnavbench: error: ...` naming the
+problem, exit status 2, no traceback, and nothing half-written."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import textwrap
+
+import pytest
+
+from kgnavbench import kitchens, tasks
+from kgnavbench.cli import main
+
+
+def run(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code: int, err: str, *named: str) -> str:
+    assert code == 2, err
+    lines = err.splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("kgnavbench: error: "), err
+    assert "Traceback" not in err
+    for name in named:
+        assert name in lines[0], (name, lines[0])
+    return lines[0]
+
+
+@pytest.fixture
+def local(tmp_path, monkeypatch):
+    """A researcher's ./baselines folder in a fresh working directory."""
+    folder = tmp_path / "baselines"
+    folder.mkdir()
+    monkeypatch.chdir(tmp_path)
+    return folder
+
+
+def plugin(body: str, privileged: bool = False) -> str:
+    head = 'DESCRIPTION = "a broken test plugin"\n' + ("PRIVILEGED = True\n" if privileged else "")
+    return head + textwrap.dedent(body)
+
+
+WALKER = """
+class Policy:
+    def reset(self, agent):
+        {reset}
+    def act(self, observations, infos):
+        {act}
+def make_policy(config, spec):
+    return Policy()
+"""
+
+BROKEN_POLICIES = {
+    "act_raises": (
+        WALKER.format(reset="pass", act="raise RuntimeError('boom')"),
+        "act() failed: RuntimeError",
+    ),
+    "reset_raises": (WALKER.format(reset="1 / 0", act="return {}"), "reset() failed: ZeroDivisionError"),
+    "act_exits": (WALKER.format(reset="pass", act="import sys; sys.exit(3)"), "act() failed: SystemExit"),
+    "act_base_exception": (
+        "class Odd(BaseException):\n    pass\n" + WALKER.format(reset="pass", act="raise Odd('odd')"),
+        "act() failed: Odd",
+    ),
+    "action_out_of_range": (WALKER.format(reset="pass", act="return {a: 10 for a in observations}"), "10"),
+    "action_a_name": (
+        WALKER.format(reset="pass", act="return {a: 'MoveAhead' for a in observations}"),
+        "MoveAhead",
+    ),
+    "action_a_bool": (WALKER.format(reset="pass", act="return {a: True for a in observations}"), "True"),
+    "action_a_float": (WALKER.format(reset="pass", act="return {a: 1.0 for a in observations}"), "1.0"),
+    "actions_a_list": (WALKER.format(reset="pass", act="return [0] * len(observations)"), "not a dict"),
+    "actions_missing": (WALKER.format(reset="pass", act="return {}"), "missing"),
+    "peeks_at_the_expert": (
+        WALKER.format(reset="pass", act="return {a: infos[a]['expert_action'] for a in observations}"),
+        "PRIVILEGED",
+    ),
+    "exits_on_import": ("import sys\nsys.exit('no')\n", "failed to import: SystemExit"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BROKEN_POLICIES))
+def test_a_broken_plugin_names_its_file_and_writes_no_results(capsys, local, floorplan1_tasks, name):
+    body, message = BROKEN_POLICIES[name]
+    (local / f"{name}.py").write_text(plugin(body))
+    runs = local.parent / "runs"
+    code, out, err = run(
+        capsys, "eval", "--method", name, "--kitchens", "FloorPlan1", "--episodes", "1", "--runs", str(runs)
+    )
+    assert_one_line_error(code, err, f"{name}.py", message)
+    assert not list(runs.glob("eval/*/episodes/*"))  # nothing half-written
+
+
+def test_a_privileged_plugin_may_read_the_expert(capsys, local, floorplan1_tasks):
+    body = WALKER.format(reset="pass", act="return {a: infos[a]['expert_action'] for a in observations}")
+    (local / "peeker.py").write_text(plugin(body, privileged=True))
+    code, out, err = run(capsys, "eval", "--method", "peeker", "--kitchens", "FloorPlan1", "--episodes", "1")
+    assert code == 0, err
+
+
+OPTIONAL_CONFIG = """
+from dataclasses import dataclass
+DESCRIPTION = "options typed X | None"
+@dataclass
+class Config:
+    cap: int | None = None
+    rate: float | None = 0.5
+def make_policy(config, spec):
+    raise ValueError(f"cap={config.cap!r} rate={config.rate!r}")
+"""
+
+
+def test_options_typed_x_or_none(capsys, local):
+    from kgnavbench.plugins import PluginError, load_plugin
+
+    (local / "optional.py").write_text(OPTIONAL_CONFIG)
+    p = load_plugin("optional")
+    assert p.config({"cap": "5"}).cap == 5
+    assert p.config({"cap": "none", "rate": "0.25"}) == p.config_class(cap=None, rate=0.25)
+    assert p.config({"rate": "None"}).rate is None
+    with pytest.raises(PluginError, match="cap='x' is not a int or none"):
+        p.config({"cap": "x"})
+    code, _, err = run(
+        capsys, "eval", "--method", "optional", "--set", "rate=fast", "--kitchens", "FloorPlan1"
+    )
+    assert_one_line_error(code, err, "optional.py", "rate='fast'", "float or none")
+    code, _, err = run(
+        capsys, "eval", "--method", "optional", "--set", "rate=inf", "--kitchens", "FloorPlan1"
+    )
+    assert_one_line_error(code, err, "optional.py", "finite")
+
+
+@pytest.mark.parametrize(
+    ("argv", "named"),
+    [
+        (["walk", "--kitchen", "FloorPlan1", "--actions", "MoveAhead", "--start", "1e308,0.5"], "1e308"),
+        (
+            ["walk", "--kitchen", "FloorPlan1", "--actions", "MoveAhead", "--start", "-1.0,0.5,1e300,0"],
+            "1e300",
+        ),
+        (["walk", "--kitchen", "FloorPlan1", "--actions", "random:100000000000"], "random:100000000000"),
+        (["prepare", "--kitchens", ","], "--kitchens ','"),
+        (["prepare", "--kitchens", ""], "--kitchens ''"),
+        (["prepare", "--kitchens", "FloorPlan1,FloorPlan1"], "FloorPlan1 named twice"),
+        (["eval", "--method", "oracle", "--kitchens", "FloorPlan4,,FloorPlan1"], "--kitchens"),
+        (["eval", "--method", "oracle", "--kitchens", "FloorPlan1,FloorPlan1"], "named twice"),
+        (["prepare", "--workers", "0"], "--workers"),
+        (["prepare", "--workers", "-3"], "--workers"),
+        (["eval", "--method", "oracle", "--episodes", "0"], "--episodes"),
+        (["eval", "--method", "oracle", "--success-rule", "near"], "near"),
+        (["eval", "--method", "nobody"], "nobody"),
+        (["eval", "--method", "random_walk", "--set", "speed=3"], "speed"),
+    ],
+)
+def test_bad_arguments(capsys, argv, named):
+    code, out, err = run(capsys, *argv)
+    assert_one_line_error(code, err, named)
+    assert out == ""
+
+
+def test_a_task_file_entry_missing_fields(capsys, monkeypatch):
+    record = json.loads(json.dumps(tasks.load_task_file()))
+    del record["kitchens"]["FloorPlan1"]["targets"][0]["destination"]
+    monkeypatch.setattr(tasks, "load_task_file", lambda path=tasks.TASKS_FILE: record)
+    code, _, err = run(capsys, "targets", "FloorPlan1")
+    assert_one_line_error(code, err, "FloorPlan1", "malformed", "destination")
+    record["kitchens"]["FloorPlan1"]["targets"][0]["destination"] = "12"
+    code, _, err = run(capsys, "targets", "FloorPlan1")
+    assert_one_line_error(code, err, "malformed", "'12'")
+
+
+@pytest.mark.parametrize(
+    ("damage", "named"),
+    [
+        (lambda r: r.update(grid="0.25"), "'grid'"),
+        (lambda r: r["objects"][0].update(openable="yes"), "'openable'"),
+        (lambda r: r["objects"][3].update(footprint=[[["a", 0]]]), "'footprint'"),
+        (lambda r: r.update(reachable=[[0.5, 1]]), "'reachable'"),
+        (lambda r: r.pop("room"), "'room'"),
+    ],
+)
+def test_a_kitchen_file_with_a_wrong_type(capsys, tmp_path, monkeypatch, damage, named):
+    with gzip.open(kitchens.KITCHEN_DIR / "FloorPlan1.json.gz", "rt") as f:
+        record = json.load(f)
+    damage(record)
+    (tmp_path / "FloorPlan1.json.gz").write_bytes(gzip.compress(json.dumps(record).encode()))
+    monkeypatch.setattr(kitchens, "KITCHEN_DIR", tmp_path)
+    kitchens.load_kitchen.cache_clear()
+    try:
+        code, _, err = run(capsys, "kitchens", "FloorPlan1")
+        assert_one_line_error(code, err, "FloorPlan1.json.gz", "corrupt", named)
+    finally:
+        kitchens.load_kitchen.cache_clear()
+
+
+def test_a_cache_folder_that_cannot_be_written(capsys, tmp_path, monkeypatch):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    monkeypatch.setenv("KGNAVBENCH_CACHE", str(blocker / "cache"))
+    code, _, err = run(capsys, "prepare", "--kitchens", "FloorPlan4", "--workers", "1")
+    assert_one_line_error(code, err, "cannot write the state-graph cache", "KGNAVBENCH_CACHE")
+    assert blocker.read_text() == "x"
+
+
+def test_a_runs_folder_that_cannot_be_written(capsys, tmp_path, floorplan1_tasks):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    argv = [
+        "eval",
+        "--method",
+        "oracle",
+        "--kitchens",
+        "FloorPlan1",
+        "--episodes",
+        "1",
+        "--runs",
+        str(blocker),
+    ]
+    code, _, err = run(capsys, *argv)
+    assert_one_line_error(code, err, "cannot write", "--runs")
+    assert blocker.read_text() == "x"
+
+
+def test_json_output_stays_json_when_the_cache_is_rebuilt(capsys, tmp_path, monkeypatch, floorplan1_tasks):
+    """A damaged cache file's notice goes to stderr; stdout is exactly one JSON document."""
+    root = tasks.cache_dir()
+    graph_path, _ = tasks._cache_paths("FloorPlan1", tasks.VIEW_SIZE, root)
+    saved = graph_path.read_bytes()
+    try:
+        graph_path.write_bytes(b"garbage")
+        argv = ["eval", "--method", "oracle", "--kitchens", "FloorPlan1", "--episodes", "1", "--json"]
+        code, out, err = run(capsys, *argv, "--runs", str(tmp_path))
+        assert code == 0, err
+        assert "unreadable" in err
+        assert json.loads(out)["summary"]["all/all"]["sr"] == 100.0
+    finally:
+        graph_path.write_bytes(saved)
