@@ -623,3 +623,17 @@ def test_render_without_a_mode_returns_none(make_env):
     env = make_env()
     env.reset(seed=0)
     assert env.render() is None
+
+
+def test_a_dropped_env_is_freed(make_env):
+    """The spaces are plain dict lookups: no functools.cache on methods holding every env alive."""
+    import gc
+    import weakref
+
+    env = make_env(n_agents=2)
+    env.action_space("navigator_0")
+    env.observation_space("navigator_1")
+    ref = weakref.ref(env)
+    del env
+    gc.collect()
+    assert ref() is None
