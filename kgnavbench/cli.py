@@ -8,7 +8,10 @@
     kgnavbench methods
     kgnavbench eval --method NAME [--success-rule visible|destination] [--stop-noop]
                     [--split table|train|val|test] [--kitchens A,B] [--episodes N] [--set KEY=VALUE]
-                    [--seed S] [--runs DIR] [--json]
+                    [--seed S] [--runs DIR] [--run TRAIN_RUN] [--json]
+    kgnavbench train --method NAME [--set KEY=VALUE] [--frames N] [--seed S] [--kitchens A,B]
+                     [--runs DIR]
+    kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR]
 
 Bad input (an unknown kitchen or action, an unreachable start, a malformed pose, an out-of-range size,
 an unusable output folder) prints one line ``kgnavbench: error: ...`` to stderr and exits with status 2.
@@ -312,6 +315,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         kitchens=tuple(_kitchen_list(args.kitchens)) if args.kitchens is not None else (),
         episodes_per_target=args.episodes,
         seed=args.seed,
+        run=str(args.run) if args.run else "",
     )
     progress = (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else print
     run = evaluate(config, args.runs, progress=progress)
@@ -329,6 +333,48 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    # torch and the trainer load only for the commands that need them
+    from .models import ModelError
+    from .train import TrainError, train_method
+
+    options = parse_options(args.set or [])
+    kitchens = _kitchen_list(args.kitchens) if args.kitchens is not None else ()
+    try:
+        directory = train_method(
+            args.method,
+            options,
+            frames=args.frames,
+            seed=args.seed,
+            kitchens=kitchens,
+            runs_dir=args.runs,
+            progress=lambda line: print(line, flush=True),
+        )
+    except (TrainError, ModelError) as e:
+        raise UsageError(str(e)) from e
+    print(directory)  # the last line: the run directory, for `kgnavbench eval --run`
+    return 0
+
+
+def cmd_table(args: argparse.Namespace) -> int:
+    # torch and the trainer load only for the commands that need them
+    from .table import SPEC_FILE, TableError, load_spec, run_table, to_markdown, write_table
+    from .train import TrainError
+
+    try:
+        spec = load_spec(args.spec or SPEC_FILE)
+        if args.preset not in spec.presets:
+            raise UsageError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
+        result = run_table(spec, args.preset, args.runs, progress=lambda line: print(line, flush=True))
+        paths = write_table(result, args.out or spec.path.parent)
+    except (TableError, TrainError) as e:
+        raise UsageError(str(e)) from e
+    print()
+    print(to_markdown(result).rstrip())
+    print(f"wrote {', '.join(str(p) for p in paths)} in {result.seconds / 60:.1f} min")
+    return 0
+
+
 def _positive(text: str) -> int:
     try:
         n = int(text)
@@ -336,6 +382,18 @@ def _positive(text: str) -> int:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
     if not 1 <= n <= 256:
         raise argparse.ArgumentTypeError(f"{n} is not in 1..256")
+    return n
+
+
+def _frames(text: str) -> int:
+    """A frame count: an integer, underscores or a k/M suffix allowed (2M, 500k, 2_000_000)."""
+    scale = {"k": 1_000, "m": 1_000_000}.get(text[-1:].lower(), 1)
+    try:
+        n = round(float((text[:-1] if scale > 1 else text).replace("_", "")) * scale)
+    except (ValueError, OverflowError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a frame count (e.g. 2000000, 2M, 500k)") from None
+    if not 1 <= n <= 10**12:
+        raise argparse.ArgumentTypeError(f"{text} is not in 1..10^12 frames")
     return n
 
 
@@ -458,8 +516,46 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a plugin option (repeatable)")
     p.add_argument("--seed", type=int, default=0, help="seed of the policy (default 0)")
     p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    p.add_argument(
+        "--run",
+        type=Path,
+        metavar="DIR",
+        help="a learned method's training run (its best-validation checkpoint)",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser(
+        "train",
+        help="train a learned method on the training kitchens' seen targets",
+        description="Train a learned plugin (one with a train hook) into RUNS/train/<method>-<hash>/: "
+        "config.json (with the git revision), metrics.csv, last.pt and best.pt (best validation SR). The "
+        "same command resumes a killed run from last.pt and does nothing for a finished one. The last "
+        "line printed is the run directory.",
+    )
+    p.add_argument(
+        "--method", required=True, metavar="NAME", help="a learned plugin (see `kgnavbench methods`)"
+    )
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a training option (repeatable)")
+    p.add_argument("--frames", type=_frames, default=10_000_000, help="frames (agent steps) to train")
+    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser(
+        "table",
+        help="regenerate the paper's Table I from the table spec (train, select, evaluate, write)",
+        description="For each row of the table spec: train unless a finished run with the same config "
+        "exists (an unfinished one resumes), take the checkpoint with the best validation SR, evaluate "
+        "it on the fixed episodes, then write table1.md/.csv/.tex and print the table. Killed and "
+        "re-run, it continues where it stopped.",
+    )
+    p.add_argument("--preset", default="quick", help="smoke | quick (default) | paper, as in the spec")
+    p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    p.add_argument("--out", type=Path, help="where the tables go (default: the spec's folder, tables/)")
+    p.set_defaults(func=cmd_table)
     return parser
 
 

@@ -98,6 +98,7 @@ class EvalConfig:
     kitchens: tuple[str, ...] = ()  # empty: every kitchen of the split
     episodes_per_target: int = EPISODES_PER_TARGET
     seed: int = 0
+    run: str = ""  # a learned method's training run directory: its best-validation checkpoint is tested
 
     def __post_init__(self) -> None:
         if self.success_rule not in SUCCESS_RULES:
@@ -205,8 +206,25 @@ def _without_expert(infos: dict) -> dict:
 
 
 def policy_spec(config: EvalConfig, seed: int, view_size: int) -> PolicySpec:
-    """What the policy is told before it starts (the hook for a trained method's checkpoint)."""
-    return PolicySpec.default(seed, view_size)
+    """What the policy is told before it starts: for a trained method, its selected checkpoint."""
+    checkpoint = str(selected_checkpoint(config.run, config.method)) if config.run else None
+    return PolicySpec.default(seed, view_size, checkpoint)
+
+
+def selected_checkpoint(run: str | Path, method: str) -> Path:
+    """Table I's rule: the checkpoint with the best validation SR (`best.pt` of a training run). The run
+    must be one of `method` (its config.json says which)."""
+    directory = Path(run)
+    try:
+        trained = json.loads((directory / "config.json").read_text()).get("method")
+    except (OSError, json.JSONDecodeError, AttributeError) as e:
+        raise EvalError(f"--run {directory} is not a training run (no readable config.json)") from e
+    if trained != method:
+        raise EvalError(f"--run {directory} trained {trained!r}, not {method!r}")
+    best = directory / "best.pt"
+    if not best.exists():
+        raise EvalError(f"--run {directory} has no best.pt yet (it is saved at the first validation)")
+    return best
 
 
 def _check_actions(plugin: Plugin, actions, agents) -> None:
@@ -409,8 +427,12 @@ def expected_episodes(kitchen: str, per_target: int) -> list[tuple[str, int]]:
 
 def run_identity(config: EvalConfig, plugin: Plugin, plugin_config) -> dict:
     """Everything that decides an evaluation's numbers; its hash names the run directory."""
+    checkpoint = selected_checkpoint(config.run, config.method) if config.run else None
     return {
-        "config": json.loads(json.dumps(asdict(config))),  # as it reads back (tuples are lists)
+        # as it reads back (tuples are lists); where the run lies is not part of it, its weights are
+        "config": json.loads(json.dumps({k: v for k, v in asdict(config).items() if k != "run"})),
+        # the tested weights themselves: a retrained run is another evaluation
+        "checkpoint_sha256": hashlib.sha256(checkpoint.read_bytes()).hexdigest() if checkpoint else None,
         "plugin_config": json.loads(json.dumps(dataclasses.asdict(plugin_config), default=str)),
         "plugin_source_sha256": hashlib.sha256(plugin.source_bytes()).hexdigest(),
         "protocol": {
@@ -472,6 +494,11 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
     checking that they hold exactly the expected episodes (a damaged file is set aside and re-run)."""
     plugin = load_plugin(config.method)
     plugin_config = plugin.config(dict(config.options))
+    if callable(getattr(plugin.module, "train", None)) and not config.run:
+        raise EvalError(
+            f"{config.method} is a learned method: train it (`kgnavbench train --method {config.method}`), "
+            "then evaluate the run it prints with --run DIR"
+        )
     kitchens = config.kitchen_list()
     identity = run_identity(config, plugin, plugin_config)
     directory = Path(runs_dir) / "eval" / config.run_name(identity)
@@ -529,4 +556,5 @@ def describe(config: EvalConfig) -> str:
     return (
         f"{config.method}{f' ({options})' if options else ''} — success: Stop {rule}; {stop}; "
         f"{config.episodes_per_target} episodes per target, split {config.split}"
+        + (f"; checkpoint {Path(config.run) / 'best.pt'} (best validation SR)" if config.run else "")
     )

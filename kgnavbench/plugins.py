@@ -61,10 +61,11 @@ class PolicySpec:
     view_size: int = VIEW_SIZE
     object_types: tuple[str, ...] = ()
     seed: int = 0
+    checkpoint: str | None = None  # a trained method's checkpoint (`kgnavbench eval --run DIR`)
 
     @staticmethod
-    def default(seed: int = 0, view_size: int = VIEW_SIZE) -> PolicySpec:
-        return PolicySpec(view_size=view_size, object_types=object_types(), seed=seed)
+    def default(seed: int = 0, view_size: int = VIEW_SIZE, checkpoint: str | None = None) -> PolicySpec:
+        return PolicySpec(view_size=view_size, object_types=object_types(), seed=seed, checkpoint=checkpoint)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,51 @@
+"""KG + attention: the paper's method. The LSTM A3C agent (trained with IL and TSE) gains a
+knowledge graph of the 125 object types and attention over the objects in view.
+
+Table I's rows "+KG" (attention=false: the mean of the spatial features Q over the objects visible in
+the view or the target) and "+KG+Attention" (attention=true: a masked softmax over those objects).
+The graph (kg_graph): "accumulated" co-visibility of types in the agent's own training frames (saved
+in checkpoints), or "per_step", the clique over the objects in view or in the target. See
+kgnavbench.models for the equations and DESIGN.md "Learned agents".
+
+    kgnavbench train --method kg_attention --frames 10000000
+    kgnavbench eval --method kg_attention --run runs/train/kg_attention-...
+"""
+
+from dataclasses import dataclass
+
+from kgnavbench.models import ModelConfig
+from kgnavbench.train import TrainOptions, learn, load_policy
+
+DESCRIPTION = "LSTM A3C + IL + TSE + knowledge graph (GCN) with object attention (option attention)"
+
+
+@dataclass
+class Config(TrainOptions):
+    il: bool = True  # the paper's KG rows build on +IL+TSE
+    tse: bool = True
+    attention: bool = True  # false: the +KG row (mean over the visible objects)
+    kg_graph: str = "accumulated"  # or "per_step"
+    gcn: int = 128  # GCN width per layer
+
+    def check(self) -> None:
+        super().check()
+        model_config(self).validate()  # kg_graph and gcn
+
+
+def model_config(config: Config) -> ModelConfig:
+    return ModelConfig(
+        arch="lstm",
+        kg="attention" if config.attention else "mean",
+        kg_graph=config.kg_graph,
+        hidden=config.hidden,
+        lstm=config.lstm,
+        gcn=config.gcn,
+    )
+
+
+def train(config: Config, run) -> None:
+    learn(run, config, model_config(config))
+
+
+def make_policy(config: Config, spec):
+    return load_policy(spec.checkpoint, spec.seed)

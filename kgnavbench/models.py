@@ -1,0 +1,776 @@
+"""Stage 7 — models: the frozen view encoder, per-state features, and the actor-critic networks of the
+learned methods (DESIGN.md "Learned agents").
+
+Read it top to bottom:
+
+1. `Encoder`: a small CNN over 84x84 RGB views, uint8 (B, 84, 84, 3) or (B, 3, 84, 84), normalised
+   inside -> (B, 512) features (ReLU, like the pooled ResNet features the paper freezes), plus the
+   pretraining heads: the 125 visible types (multi-label), the camera pitch (4 classes) and whether a
+   receptacle is open. `ENCODER_FILE` (`kgnavbench/data/encoder.pt`, committed, fp16 weights with
+   its training record) holds the frozen encoder; `load_encoder`, `encoder_hash`.
+2. `pretrain_encoder` (`python -m kgnavbench.models pretrain`): supervised on the views of the 20
+   training kitchens only; validation on the 5 validation kitchens (mean average precision and
+   micro-F1 over the 125 types). Deterministic given the seed.
+3. `state_features(kitchen)`: every state's view encoded once, (S, 512) float16, cached beside the
+   state graph as `<kitchen>-<graph fingerprint>.features-<encoder hash>.npy`, memory-mapped.
+4. The networks. `ModelConfig`, `make_model` -> `ActorCritic`:
+     I_t = ReLU(W_f [ReLU(W_s X_t), ReLU(W_s X_g)])                     siamese + fusion, (B, 256)
+     +KG: Â = D^-1/2 (A + I) D^-1/2, H(l+1) = ReLU(Â H(l) W(l)), H(0) = I, 3 layers -> H (125, 128);
+          Q_i = W'_f [ReLU(W'_s R_t,i H_i), ReLU(W'_s R_g,i H_i)]          (125, 128) per sample;
+          "mean": mean of Q over R_z = R_t OR R_g; "attention": alpha = masked softmax over R_z of
+          w2 . ReLU(W1 Q_i), H_a = sum alpha_i Q_i                          (B, 128)
+     lstm: LSTMCell([I_t, kg]) (256), then policy (10 logits) and value MLPs.
+     ff (Zhu et al. 2017): siamese + fusion over the last `history` frames (and the target stacked as
+          many times), then a scene-specific layer and policy / value heads per training kitchen.
+   `CoVisibility`: the accumulated knowledge graph (co-visibility counts of the 125 types).
+
+Why the knowledge-graph branch is cheap. R_t and R_g are 0/1, so Q_i takes one of four values per
+node, all linear in (R_t,i, R_g,i): Q_i = base + R_t,i D1_i + R_g,i D2_i, with base (d,) and D1, D2
+(125, d) computed once per forward from the shared graph. The mean and the attention pool are then
+two (B, 125) x (125, d) products, and an attention score is one of three per-node numbers (only
+nodes in R_z count). The per-step graph (the clique over R_z) is as exact and cheap: in a clique every
+R_z node averages the same rows, so after any number of GCN layers all R_z rows equal one vector per
+sample. `tests/test_models.py` checks both against a literal per-sample implementation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .kitchens import DATA_DIR, atomic_write, check_name
+from .tasks import VIEW_SIZE, cache_dir, graph_fingerprint, load_task_file, state_graph
+from .world import ACTIONS, PITCHES
+
+FEATURE_DIM = 512
+N_TYPES = 125
+N_ACTIONS = len(ACTIONS)
+ENCODER_FILE = DATA_DIR / "encoder.pt"
+ENCODER_FORMAT = 1
+# Fixed input normalisation of the uint8 views (mean and spread of rendered views, rounded).
+PIXEL_MEAN, PIXEL_STD = 0.45, 0.25
+
+
+def first_line(error: BaseException) -> str:
+    """An exception's message cut to its first line (torch's load errors run to a page)."""
+    return (str(error).strip().splitlines() or [""])[0]
+
+
+class ModelError(ValueError):
+    """Bad model input: unknown option, missing or corrupt encoder file, wrongly shaped tensors."""
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. The view encoder
+
+
+class Encoder(nn.Module):
+    """84x84 RGB view -> 512 features: the convolutional trunk of the Nature DQN (Mnih et al. 2015:
+    8x8 stride 4, 4x4 stride 2, 3x3 stride 1 -> 64 x 7 x 7), the classic encoder of 84x84 frames and
+    three times faster to train on CPU than a four-layer stride-2 stack of the same size, then a
+    linear layer to 512. The heads are used only in pretraining."""
+
+    def __init__(self, feature_dim: int = FEATURE_DIM, n_types: int = N_TYPES):
+        super().__init__()
+        self.convs = nn.Sequential(
+            nn.Conv2d(3, 32, 8, stride=4),  # 20x20
+            nn.ReLU(),
+            nn.Conv2d(32, 64, 4, stride=2),  # 9x9
+            nn.ReLU(),
+            nn.Conv2d(64, 64, 3, stride=1),  # 7x7
+            nn.ReLU(),
+        )
+        self.project = nn.Linear(64 * 7 * 7, feature_dim)
+        self.type_head = nn.Linear(feature_dim, n_types)
+        self.pitch_head = nn.Linear(feature_dim, len(PITCHES))
+        self.open_head = nn.Linear(feature_dim, 1)
+        # channels-last convolutions run about twice as fast on CPU, and (B, 84, 84, 3) views
+        # permuted to NCHW already have that layout: no copy
+        self.convs.to(memory_format=torch.channels_last)
+
+    def forward(self, views: Tensor) -> Tensor:
+        """(B, 84, 84, 3) or (B, 3, 84, 84), uint8 or float on the uint8 scale 0..255 -> (B, 512)."""
+        if views.dim() != 4 or (views.shape[-1] != 3 and views.shape[1] != 3):
+            raise ModelError(f"views must be (B, H, W, 3) or (B, 3, H, W), got {tuple(views.shape)}")
+        x = views.permute(0, 3, 1, 2) if views.shape[-1] == 3 else views
+        x = (x.float() * (1 / 255) - PIXEL_MEAN) * (1 / PIXEL_STD)
+        x = self.convs(x.contiguous(memory_format=torch.channels_last))
+        return F.relu(self.project(x.flatten(1)))
+
+    def predict(self, features: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Pretraining heads: type logits (B, 125), pitch logits (B, 4), open logit (B,)."""
+        return self.type_head(features), self.pitch_head(features), self.open_head(features).squeeze(-1)
+
+
+def save_encoder(encoder: Encoder, path: Path, meta: dict) -> None:
+    """fp16 weights and the training record, written atomically."""
+    payload = {
+        "format": ENCODER_FORMAT,
+        "state_dict": {k: v.detach().to(torch.float16).contiguous() for k, v in encoder.state_dict().items()},
+        "meta": meta,
+    }
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    atomic_write(Path(path), lambda f: f.write(buffer.getvalue()))
+
+
+def read_encoder_file(path: Path | str = ENCODER_FILE) -> dict:
+    """The payload of an encoder file: {"format", "state_dict", "meta"}; ModelError if unusable."""
+    path = Path(path)
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(payload, dict) or payload.get("format") != ENCODER_FORMAT:
+            raise ValueError(f"format {payload.get('format') if isinstance(payload, dict) else '?'!r}")
+        if not isinstance(payload.get("state_dict"), dict):
+            raise ValueError("no state_dict")
+        return payload
+    except FileNotFoundError as e:
+        raise ModelError(f"encoder weights {path} are missing; run `make encoder` to train them") from e
+    except Exception as e:  # noqa: BLE001 - anything unreadable is reported as corrupt, by name
+        raise ModelError(
+            f"encoder weights {path} are corrupt ({type(e).__name__}: {first_line(e)}); run `make encoder`"
+        ) from e
+
+
+def load_encoder(path: Path | str = ENCODER_FILE) -> Encoder:
+    """The pretrained encoder, float32, in eval mode. ModelError naming the file if missing/corrupt."""
+    payload = read_encoder_file(path)
+    state = payload["state_dict"]
+    feature_dim = state["project.weight"].shape[0] if "project.weight" in state else FEATURE_DIM
+    encoder = Encoder(feature_dim=feature_dim)
+    try:
+        encoder.load_state_dict({k: v.float() for k, v in state.items()})
+    except RuntimeError as e:
+        raise ModelError(f"encoder weights {path} do not fit the Encoder ({e}); run `make encoder`") from e
+    return encoder.eval()
+
+
+_hash_cache: dict[tuple, str] = {}
+
+
+def encoder_hash(path: Path | str = ENCODER_FILE) -> str:
+    """12 hex digits of the SHA-256 of the encoder file's bytes (cached per path, size and mtime)."""
+    path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError as e:
+        raise ModelError(f"encoder weights {path} are missing; run `make encoder` to train them") from e
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _hash_cache:
+        _hash_cache[key] = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
+    return _hash_cache[key]
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. Pretraining on the training kitchens' views
+
+
+@dataclass
+class ViewSet:
+    """The views of some kitchens with their labels, in memory."""
+
+    views: np.ndarray  # (N, 84, 84, 3) uint8
+    types: np.ndarray  # (N, 125) uint8: visible object types
+    pitch: np.ndarray  # (N,) int64 index into PITCHES
+    opened: np.ndarray  # (N,) float32 1 when a receptacle is open
+
+
+def load_views(kitchens, root: Path | None = None) -> ViewSet:
+    parts = [state_graph(check_name(k), root=root) for k in kitchens]
+    return ViewSet(
+        views=np.concatenate([np.asarray(g.views) for g in parts]),
+        types=np.concatenate([np.asarray(g.object_vectors) for g in parts]),
+        pitch=np.concatenate([np.searchsorted(PITCHES, g.pitch) for g in parts]).astype(np.int64),
+        opened=np.concatenate([(g.opened >= 0) for g in parts]).astype(np.float32),
+    )
+
+
+def average_precision(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Average precision of one label column: mean precision at the rank of every positive."""
+    order = np.argsort(-scores, kind="stable")
+    hits = labels[order].astype(np.float64)
+    if hits.sum() == 0:
+        return float("nan")
+    precision = np.cumsum(hits) / np.arange(1, len(hits) + 1)
+    return float((precision * hits).sum() / hits.sum())
+
+
+@torch.no_grad()
+def evaluate_encoder(encoder: Encoder, data: ViewSet, batch: int = 256) -> dict:
+    """Mean average precision over the types present in `data`, micro-F1 at probability 0.5, pitch
+    accuracy and open accuracy."""
+    was_training = encoder.training
+    encoder.eval()
+    type_scores, pitch_pred, open_scores = [], [], []
+    for i in range(0, len(data.views), batch):
+        f = encoder(torch.from_numpy(np.ascontiguousarray(data.views[i : i + batch])))
+        t, p, o = encoder.predict(f)
+        type_scores.append(t.numpy())
+        pitch_pred.append(p.argmax(1).numpy())
+        open_scores.append(o.numpy())
+    encoder.train(was_training)
+    scores, labels = np.concatenate(type_scores), data.types.astype(bool)
+    present = np.flatnonzero(labels.any(0))
+    aps = [average_precision(scores[:, j], labels[:, j]) for j in present]
+    predicted = scores > 0
+    tp = (predicted & labels).sum()
+    f1 = 2 * tp / max(1, predicted.sum() + labels.sum())
+    return {
+        "mAP": round(float(np.mean(aps)), 4),
+        "micro_f1": round(float(f1), 4),
+        "types_present": int(len(present)),
+        "pitch_accuracy": round(float((np.concatenate(pitch_pred) == data.pitch).mean()), 4),
+        "open_accuracy": round(float(((np.concatenate(open_scores) > 0) == (data.opened > 0)).mean()), 4),
+        "views": int(len(data.views)),
+    }
+
+
+def subsample(data: ViewSet, n: int | None) -> ViewSet:
+    """At most n views, evenly spaced (all of them when n is None)."""
+    if n is None or n >= len(data.views):
+        return data
+    keep = np.linspace(0, len(data.views) - 1, n).round().astype(np.int64)
+    return ViewSet(data.views[keep], data.types[keep], data.pitch[keep], data.opened[keep])
+
+
+def shifted(views: np.ndarray, shift: int, rng: np.random.Generator) -> np.ndarray:
+    """Every view moved by up to `shift` pixels each way, edges repeated (DrQ's random shift)."""
+    if shift == 0:
+        return views
+    size = views.shape[1]
+    padded = np.pad(views, ((0, 0), (shift, shift), (shift, shift), (0, 0)), mode="edge")
+    dy, dx = rng.integers(0, 2 * shift + 1, (2, len(views)))
+    return np.stack([p[y : y + size, x : x + size] for p, y, x in zip(padded, dy, dx)])
+
+
+def pretrain_encoder(
+    kitchens=None,
+    epochs: int = 8,
+    seed: int = 0,
+    out: Path | str | None = ENCODER_FILE,
+    samples_per_epoch: int = 16_000,
+    batch_size: int = 64,
+    lr: float = 1e-3,
+    shift: int = 4,
+    val_kitchens=None,
+    max_val_views: int | None = None,
+    root: Path | None = None,
+    log=print,
+) -> tuple[Encoder, dict]:
+    """Train the encoder on the views of `kitchens` (default: the training split) to predict the
+    visible types (BCE), with the camera pitch and the open flag as auxiliary targets; views shifted
+    by up to `shift` pixels. Each epoch is `samples_per_epoch` views drawn without replacement by a
+    generator seeded with (seed, epoch). Progress per epoch on 2,000 views of the training kitchens
+    and 3,000 of the validation kitchens (default: the validation split); at the end on all of them
+    (at most `max_val_views`, evenly spaced, when given). Saves to `out` (None: do not save) and
+    returns the encoder and its training record."""
+    splits = load_task_file()["splits"]
+    kitchens = list(kitchens or splits["train"])
+    val_kitchens = list(val_kitchens or splits["val"])
+    if set(kitchens) & set(val_kitchens):
+        raise ModelError(f"pretraining and validation kitchens overlap: {set(kitchens) & set(val_kitchens)}")
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    start = time.perf_counter()
+    train = load_views(kitchens, root)
+    val = subsample(load_views(val_kitchens, root), max_val_views)
+    train_check, val_check = subsample(train, 2000), subsample(val, 3000)
+    log(
+        f"pretrain: {len(train.views)} views of {len(kitchens)} training kitchens, "
+        f"{len(val.views)} of {len(val_kitchens)} validation kitchens ({time.perf_counter() - start:.1f} s)"
+    )
+    torch.manual_seed(seed)
+    random_init = evaluate_encoder(Encoder(), val)
+    torch.manual_seed(seed)
+    encoder = Encoder()
+    optimiser = torch.optim.Adam(encoder.parameters(), lr=lr)
+    n = min(samples_per_epoch, len(train.views))
+    steps_per_epoch = n // batch_size
+    total = max(1, epochs * steps_per_epoch)
+    # linear warm-up over 100 steps, then cosine decay to zero
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimiser, lambda s: min(1.0, (s + 1) / 100) * 0.5 * (1 + math.cos(math.pi * min(s, total) / total))
+    )
+    history, seen = [], 0
+    train_start = time.perf_counter()
+    for epoch in range(epochs):
+        order = np.random.default_rng([seed, epoch]).permutation(len(train.views))[:n]
+        shifts = np.random.default_rng([seed, epoch, 1])
+        encoder.train()
+        running, last_print = 0.0, time.perf_counter()
+        for b in range(steps_per_epoch):
+            idx = np.sort(order[b * batch_size : (b + 1) * batch_size])  # sorted: sequential reads
+            views = torch.from_numpy(shifted(train.views[idx], shift, shifts))
+            t_logits, p_logits, o_logits = encoder.predict(encoder(views))
+            loss = (
+                # summed over the types (mean over the batch): a view shows ~3 of 125 types, and a
+                # mean over types would drown those few positives next to the auxiliary losses
+                F.binary_cross_entropy_with_logits(
+                    t_logits, torch.from_numpy(train.types[idx]).float(), reduction="sum"
+                )
+                / len(idx)
+                + 0.25 * F.cross_entropy(p_logits, torch.from_numpy(train.pitch[idx]))
+                + 0.25 * F.binary_cross_entropy_with_logits(o_logits, torch.from_numpy(train.opened[idx]))
+            )
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+            schedule.step()
+            seen += len(idx)
+            running += loss.item()
+            if time.perf_counter() - last_print > 15 or b == steps_per_epoch - 1:
+                last_print = time.perf_counter()
+                rate = seen / (last_print - train_start)
+                log(
+                    f"  epoch {epoch + 1}/{epochs}  batch {b + 1}/{steps_per_epoch}  "
+                    f"loss {running / (b + 1):.4f}  {rate:,.0f} images/s"
+                )
+        on_train, on_val = evaluate_encoder(encoder, train_check), evaluate_encoder(encoder, val_check)
+        history.append(
+            {
+                "epoch": epoch + 1,
+                "train_loss": round(running / max(1, steps_per_epoch), 4),
+                "train_mAP": on_train["mAP"],
+                "val_mAP": on_val["mAP"],
+                "val_micro_f1": on_val["micro_f1"],
+            }
+        )
+        log(
+            f"epoch {epoch + 1}/{epochs}: mAP {on_train['mAP']:.4f} on {on_train['views']} training views, "
+            f"{on_val['mAP']:.4f} on {on_val['views']} validation views (micro-F1 {on_val['micro_f1']:.4f})"
+        )
+    seconds = time.perf_counter() - train_start
+    encoder.eval()
+    final = evaluate_encoder(encoder, val)
+    # The record is deterministic (no timings): the same seed and data give the same file and hash.
+    meta = {
+        "seed": seed,
+        "epochs": epochs,
+        "samples_per_epoch": n,
+        "batch_size": batch_size,
+        "lr": lr,
+        "shift": shift,
+        "images": seen,
+        "kitchens": kitchens,
+        "val_kitchens": val_kitchens,
+        "view_fingerprints": {k: graph_fingerprint(k) for k in kitchens + val_kitchens},
+        "val": final,
+        "val_random_init": random_init,
+        "history": history,
+        "torch": str(torch.__version__),
+    }
+    log(
+        f"pretrain: {seen} images in {seconds:.1f} s ({seen / max(seconds, 1e-9):,.0f} images/s); on "
+        f"{final['views']} validation views: mAP {final['mAP']:.4f} (random init {random_init['mAP']:.4f}), "
+        f"micro-F1 {final['micro_f1']:.4f} (random init {random_init['micro_f1']:.4f}), pitch accuracy "
+        f"{final['pitch_accuracy']:.4f}"
+    )
+    if out is not None:
+        save_encoder(encoder, Path(out), meta)
+        log(f"pretrain: wrote {out} (hash {encoder_hash(out)})")
+    return encoder, meta
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. Per-state features, cached beside the state graph
+
+
+_encoders: dict[str, Encoder] = {}
+
+
+def _cached_encoder() -> Encoder:
+    key = encoder_hash()
+    if key not in _encoders:
+        _encoders.clear()
+        _encoders[key] = load_encoder()
+    return _encoders[key]
+
+
+def features_path(kitchen: str, root: Path | None = None) -> Path:
+    root = Path(root or cache_dir())
+    return root / f"{kitchen}-{graph_fingerprint(kitchen)}.features-{encoder_hash()}.npy"
+
+
+@torch.no_grad()
+def encode_views(encoder: Encoder, views: np.ndarray, batch: int = 256) -> np.ndarray:
+    """(N, 84, 84, 3) uint8 -> (N, 512) float16."""
+    out = np.empty((len(views), encoder.project.out_features), np.float16)
+    for i in range(0, len(views), batch):
+        out[i : i + batch] = encoder(torch.from_numpy(np.array(views[i : i + batch]))).numpy()
+    if not np.isfinite(out).all():
+        raise ModelError("encoded features overflow float16")
+    return out
+
+
+def state_features(kitchen: str, root: Path | None = None) -> np.ndarray:
+    """(S, 512) float16 features of every state's view (read-only memmap), from the cache or computed
+    now with the committed encoder (and cached). A cache file that is unreadable or has the wrong
+    shape or type is rebuilt, never trusted."""
+    check_name(kitchen)
+    graph = state_graph(kitchen, VIEW_SIZE, root)
+    path = features_path(kitchen, root)
+    expected = (graph.n_states, FEATURE_DIM)
+    if path.exists():
+        try:
+            features = np.load(path, mmap_mode="r")
+            if features.shape != expected or features.dtype != np.float16:
+                raise ValueError(f"{features.dtype} {features.shape}, expected float16 {expected}")
+            return features
+        except Exception as e:  # noqa: BLE001 - derived data: rebuild whatever is wrong with it
+            print(
+                f"kgnavbench: cached features {path.name} are unreadable ({e}); rebuilding them",
+                file=sys.stderr,
+            )
+    features = encode_views(_cached_encoder(), graph.views)
+    atomic_write(path, lambda f: np.save(f, features))
+    return np.load(path, mmap_mode="r")
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. The networks
+
+
+@dataclass
+class ModelConfig:
+    arch: str = (
+        "lstm"  # "lstm" (LSTM actor-critic) | "ff" (Zhu et al.: last `history` frames, per-scene heads)
+    )
+    kg: str = "none"  # "none" | "mean" (+KG: mean of Q over the R_z nodes) | "attention" (+KG+Attention)
+    kg_graph: str = (
+        "accumulated"  # "accumulated" (co-visibility counts, passed in) | "per_step" (clique over R_z)
+    )
+    feature_dim: int = FEATURE_DIM
+    hidden: int = 256  # siamese and fusion width
+    gcn: int = 128  # GCN width per layer; also the width of Q and of the attention's hidden layer
+    lstm: int = 256
+    head: int = 128  # hidden width of the policy and value MLPs
+    history: int = 4  # ff only
+    n_scenes: int = 20  # ff only: one scene-specific layer and policy/value heads per training kitchen
+    pixels: bool = False  # end to end: the Encoder CNN inside the model, inputs are uint8 views
+
+    def validate(self) -> None:
+        choices = {
+            "arch": ("lstm", "ff"),
+            "kg": ("none", "mean", "attention"),
+            "kg_graph": ("accumulated", "per_step"),
+        }
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ModelError(
+                    f"ModelConfig.{name}={getattr(self, name)!r}: expected one of {', '.join(allowed)}"
+                )
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type in (int, "int") and (
+                not isinstance(value, int) or isinstance(value, bool) or value < 1
+            ):
+                raise ModelError(f"ModelConfig.{f.name}={value!r}: expected a positive integer")
+        if not isinstance(self.pixels, bool):
+            raise ModelError(f"ModelConfig.pixels={self.pixels!r}: expected true or false")
+
+
+def normalized_adjacency(a: Tensor) -> Tensor:
+    """D^-1/2 (A + I) D^-1/2 (D: the degrees of A + I) for (125, 125) or batched (B, 125, 125) A."""
+    a_plus = a + torch.eye(a.shape[-1], dtype=a.dtype, device=a.device)
+    d = a_plus.sum(-1).rsqrt()
+    return d.unsqueeze(-1) * a_plus * d.unsqueeze(-2)
+
+
+def masked_softmax(scores: Tensor, mask: Tensor) -> Tensor:
+    """Softmax over the last dimension, over entries where mask is nonzero only; zero elsewhere. A row
+    whose mask is all zero gets all-zero weights (no NaN, in the forward or the backward pass)."""
+    keep = mask > 0
+    s = scores.float().masked_fill(~keep, float("-inf"))
+    top = s.amax(-1, keepdim=True).detach()
+    top = torch.where(torch.isfinite(top), top, torch.zeros_like(top))
+    e = torch.exp(s - top) * keep
+    return e / e.sum(-1, keepdim=True).clamp_min(1e-30)
+
+
+class CoVisibility:
+    """The accumulated knowledge graph: how often each pair of the 125 types was visible together in
+    the agent's training frames."""
+
+    def __init__(self, n_types: int = N_TYPES):
+        self.n_types = n_types
+        self.counts = torch.zeros(n_types, n_types, dtype=torch.float64)
+
+    def add(self, object_vectors) -> None:
+        """(N, 125) 0/1 rows (one frame each): every pair visible together in a frame counts once."""
+        v = torch.as_tensor(
+            np.asarray(object_vectors) if not isinstance(object_vectors, Tensor) else object_vectors
+        )
+        v = (v.reshape(-1, self.n_types) > 0).float()
+        # float32 sums of 0/1 products are exact up to 2**24 frames per call
+        pairs = (v.T @ v).double()
+        pairs.fill_diagonal_(0)
+        self.counts += pairs
+
+    def adjacency(self) -> Tensor:
+        """(125, 125) float32 0/1: an edge where two types were ever seen together; no self loops."""
+        a = (self.counts > 0).float()
+        a.fill_diagonal_(0)
+        return a
+
+    def state_dict(self) -> dict:
+        return {"counts": self.counts.clone()}
+
+    def load_state_dict(self, d: dict) -> None:
+        counts = d.get("counts") if isinstance(d, dict) else None
+        if not isinstance(counts, Tensor) or counts.shape != (self.n_types, self.n_types):
+            got = tuple(counts.shape) if isinstance(counts, Tensor) else type(counts).__name__
+            raise ModelError(
+                f"co-visibility counts must be a ({self.n_types}, {self.n_types}) tensor, got {got}"
+            )
+        self.counts = counts.detach().to(torch.float64).clone()
+
+
+class KnowledgeGraph(nn.Module):
+    """GCN over the 125 object types, the spatial features Q, and their mean or attention pool over
+    R_z (module docstring: the closed form that never builds (B, 125, d) tensors)."""
+
+    def __init__(self, cfg: ModelConfig, n_types: int = N_TYPES):
+        super().__init__()
+        d = cfg.gcn
+        self.per_step, self.attention = cfg.kg_graph == "per_step", cfg.kg == "attention"
+        # H(0) = I, so the first layer's Â H(0) W(0) is Â W(0): W(0) is one row per type
+        self.w0 = nn.Parameter(torch.randn(n_types, d) * (2 / n_types) ** 0.5)
+        self.w1 = nn.Parameter(torch.randn(d, d) * (2 / d) ** 0.5)
+        self.w2 = nn.Parameter(torch.randn(d, d) * (2 / d) ** 0.5)
+        self.spatial_siamese = nn.Linear(d, d)  # W'_s
+        self.spatial_fusion = nn.Linear(2 * d, d)  # W'_f
+        if self.attention:
+            self.score_hidden = nn.Linear(d, d)  # W1
+            self.score = nn.Linear(d, 1)  # w2
+
+    def node_features(self, a_hat: Tensor) -> Tensor:
+        """H = the 3-layer GCN over Â (125, 125) -> (125, d)."""
+        h = F.relu(a_hat @ self.w0)
+        h = F.relu(a_hat @ (h @ self.w1))
+        return F.relu(a_hat @ (h @ self.w2))
+
+    def q_terms(self, h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Q of a node whose GCN row is h (..., d): base + R_t D1 + R_g D2 -> base (d,), D1, D2 (..., d).
+        A zero row (R = 0) gives ReLU(W'_s 0 + b) = ReLU(b): the constant that base collects."""
+        d = h.shape[-1]
+        wa, wb = self.spatial_fusion.weight[:, :d], self.spatial_fusion.weight[:, d:]
+        on = F.relu(self.spatial_siamese(h))
+        off = F.relu(self.spatial_siamese.bias)
+        ca, cb = off @ wa.T, off @ wb.T
+        return self.spatial_fusion.bias + ca + cb, on @ wa.T - ca, on @ wb.T - cb
+
+    def scores(self, q: Tensor) -> Tensor:
+        return self.score(F.relu(self.score_hidden(q))).squeeze(-1)
+
+    def forward(
+        self, r_t: Tensor, r_g: Tensor, adjacency: Tensor | None
+    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """r_t, r_g: (B, 125) 0/1 float. Returns the pooled Q (B, d), attention (B, 125) or None, and
+        the node features H (125, d) of the accumulated graph (None per step)."""
+        r_z = torch.maximum(r_t, r_g)
+        both, t_only, g_only = r_t * r_g, r_t * (1 - r_g), (1 - r_t) * r_g
+        if self.per_step:
+            # the clique over R_z: every R_z row of Â is 1/|R_z| on the R_z columns, so every layer
+            # maps the (shared) R_z row u to ReLU(u W); the first layer's u is the mean of W(0)'s rows
+            u = F.relu((r_z @ self.w0) / r_z.sum(1, keepdim=True).clamp_min(1))
+            u = F.relu(F.relu(u @ self.w1) @ self.w2)
+            base, d1, d2 = self.q_terms(u)  # d1, d2: (B, d), the same for every R_z node of a sample
+            node_features = None
+        else:
+            if adjacency is None:
+                raise ModelError(
+                    "kg_graph='accumulated' needs the (125, 125) adjacency of the co-visibility graph"
+                )
+            node_features = self.node_features(normalized_adjacency(adjacency.to(self.w0.dtype)))
+            base, d1, d2 = self.q_terms(node_features)  # d1, d2: (125, d)
+        if self.attention:
+            q = torch.stack([base + d1, base + d2, base + d1 + d2])  # (3, 125 or B, d): t, g, both
+            s_t, s_g, s_both = self.scores(q).unbind(0)
+            if self.per_step:
+                s_t, s_g, s_both = s_t[:, None], s_g[:, None], s_both[:, None]
+            weights = masked_softmax(t_only * s_t + g_only * s_g + both * s_both, r_z)
+            attention = weights
+        else:
+            weights = r_z / r_z.sum(1, keepdim=True).clamp_min(1)
+            attention = None
+        weights = weights.to(d1.dtype)
+        total = weights.sum(1, keepdim=True)  # 1, or 0 when R_z is empty
+        if self.per_step:
+            pooled = (
+                total * base
+                + (weights * r_t).sum(1, keepdim=True) * d1
+                + (weights * r_g).sum(1, keepdim=True) * d2
+            )
+        else:
+            pooled = total * base + (weights * r_t) @ d1 + (weights * r_g) @ d2
+        return pooled, attention, node_features
+
+
+class ActorCritic(nn.Module):
+    """The learned agents' network (module docstring). forward(view, target, view_objects,
+    target_objects, state, adjacency, scene) -> (logits (B, 10), value (B,), new state, extras)."""
+
+    def __init__(self, cfg: ModelConfig, n_types: int = N_TYPES, n_actions: int = N_ACTIONS):
+        super().__init__()
+        cfg.validate()
+        self.cfg, self.n_types, self.n_actions = cfg, n_types, n_actions
+        self.encoder = Encoder(cfg.feature_dim, n_types) if cfg.pixels else None
+        frames = cfg.history if cfg.arch == "ff" else 1
+        self.siamese = nn.Linear(frames * cfg.feature_dim, cfg.hidden)  # W_s
+        self.fusion = nn.Linear(2 * cfg.hidden, cfg.hidden)  # W_f
+        self.kg = KnowledgeGraph(cfg, n_types) if cfg.kg != "none" else None
+        joint = cfg.hidden + (cfg.gcn if self.kg is not None else 0)
+        if cfg.arch == "lstm":
+            self.lstm = nn.LSTMCell(joint, cfg.lstm)
+            # the policy and value MLPs' first layers side by side: one matrix product for both
+            self.heads_hidden = nn.Linear(cfg.lstm, 2 * cfg.head)
+            self.policy = nn.Linear(cfg.head, n_actions)
+            self.value = nn.Linear(cfg.head, 1)
+            nn.init.normal_(self.policy.weight, std=0.01)  # a near-uniform policy at the start
+            nn.init.zeros_(self.policy.bias)
+        else:
+            s, h = cfg.n_scenes, cfg.hidden
+
+            def uniform(*shape, fan_in):
+                return nn.Parameter(torch.empty(*shape).uniform_(-(fan_in**-0.5), fan_in**-0.5))
+
+            self.scene_weight, self.scene_bias = (
+                uniform(s, joint, h, fan_in=joint),
+                uniform(s, h, fan_in=joint),
+            )
+            self.scene_policy = nn.Parameter(torch.randn(s, h, n_actions) * 0.01)
+            self.scene_policy_bias = nn.Parameter(torch.zeros(s, n_actions))
+            self.scene_value, self.scene_value_bias = uniform(s, h, 1, fan_in=h), uniform(s, 1, fan_in=h)
+
+    def initial_state(self, batch: int, device=None) -> tuple[Tensor, Tensor] | None:
+        if self.cfg.arch != "lstm":
+            return None
+        z = torch.zeros(batch, self.cfg.lstm, device=device)
+        return z, z.clone()
+
+    def _features(self, x: Tensor, frames: int) -> Tensor:
+        """(B, [frames,] 512) features, or uint8 views when pixels -> (B, frames * 512) float."""
+        if self.encoder is not None:
+            lead = x.shape[: x.dim() - 3]
+            x = self.encoder(x.reshape(-1, *x.shape[-3:])).reshape(*lead, -1)
+        dtype = self.siamese.weight.dtype
+        if frames > 1 and (x.dim() != 3 or x.shape[1] != frames):
+            raise ModelError(f"ff views must be (B, history={frames}, features), got {tuple(x.shape)}")
+        return x.reshape(x.shape[0], -1).to(dtype)
+
+    def forward(self, view, target, view_objects, target_objects, state=None, adjacency=None, scene=None):
+        cfg = self.cfg
+        frames = cfg.history if cfg.arch == "ff" else 1
+        x_t = self._features(view, frames)
+        x_g = self._features(target, 1)
+        if frames > 1:  # Zhu et al. stack the target image as many times as the frames
+            x_g = x_g.repeat(1, frames)
+        b = x_t.shape[0]
+        if x_t.shape[1] != self.siamese.in_features or x_g.shape != x_t.shape:
+            raise ModelError(
+                f"view {tuple(x_t.shape)} and target {tuple(x_g.shape)} features do not fit "
+                f"{self.siamese.in_features} inputs"
+            )
+        s = F.relu(self.siamese(torch.cat([x_t, x_g])))  # the siamese layer, both inputs in one product
+        joint = F.relu(self.fusion(torch.cat([s[:b], s[b:]], 1)))
+        attention = node_features = None
+        if self.kg is not None:
+            r_t = (view_objects > 0).to(self.kg.w0.dtype)
+            r_g = (target_objects > 0).to(self.kg.w0.dtype)
+            pooled, attention, node_features = self.kg(r_t, r_g, adjacency)
+            joint = torch.cat([joint, pooled.to(joint.dtype)], 1)
+        extras = {"attention": attention, "node_features": node_features}
+        if cfg.arch == "lstm":
+            if state is None:
+                state = self.initial_state(b, joint.device)
+            h, c = self.lstm(joint, state)
+            hidden = F.relu(self.heads_hidden(h))
+            logits = self.policy(hidden[:, : cfg.head])
+            value = self.value(hidden[:, cfg.head :]).squeeze(-1)
+            return logits, value, (h, c), extras
+        logits, value = self._scene_heads(joint, scene)
+        return logits, value, None, extras
+
+    def _scene_heads(self, joint: Tensor, scene: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Scene-specific layer and heads: the batch sorted by scene, one product per scene present
+        (a loop over at most n_scenes scenes, never over samples), then put back in order."""
+        if scene is None:
+            raise ModelError("arch='ff' needs scene, the (B,) training-kitchen index of every sample")
+        scene = torch.as_tensor(scene, dtype=torch.long).reshape(-1)
+        if scene.shape[0] != joint.shape[0]:
+            raise ModelError(f"scene has {scene.shape[0]} entries for a batch of {joint.shape[0]}")
+        if len(scene) and (int(scene.min()) < 0 or int(scene.max()) >= self.cfg.n_scenes):
+            raise ModelError(f"scene indices must lie in 0..{self.cfg.n_scenes - 1}")
+        order = torch.argsort(scene, stable=True)
+        counts = torch.bincount(scene, minlength=self.cfg.n_scenes).tolist()
+        logits, values = [], []
+        for k, part in enumerate(joint[order].split(counts)):
+            if len(part) == 0:
+                continue
+            h = F.relu(part @ self.scene_weight[k].to(part.dtype) + self.scene_bias[k])
+            logits.append(h @ self.scene_policy[k].to(h.dtype) + self.scene_policy_bias[k])
+            values.append(h @ self.scene_value[k].to(h.dtype) + self.scene_value_bias[k])
+        inverse = torch.empty_like(order)
+        inverse[order] = torch.arange(len(order))
+        return torch.cat(logits)[inverse], torch.cat(values)[inverse].squeeze(-1)
+
+
+def make_model(cfg: ModelConfig) -> ActorCritic:
+    """The network of a config; ModelError (a ValueError) naming the bad field."""
+    if not isinstance(cfg, ModelConfig):
+        raise ModelError(f"make_model needs a ModelConfig, got {type(cfg).__name__}")
+    cfg.validate()
+    return ActorCritic(cfg)
+
+
+# ------------------------------------------------------------------------------------------------
+# Command line: python -m kgnavbench.models pretrain | features
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m kgnavbench.models", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("pretrain", help="train the view encoder on the training kitchens' views")
+    p.add_argument("--epochs", type=int, default=8)
+    p.add_argument("--samples-per-epoch", type=int, default=16_000)
+    p.add_argument("--shift", type=int, default=4, help="random shift of the views in pixels (0: none)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=ENCODER_FILE)
+    f = sub.add_parser("features", help="encode every state's view of the kitchens, cached")
+    f.add_argument("kitchens", nargs="*", help="default: all 30")
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "pretrain":
+            pretrain_encoder(
+                epochs=args.epochs, seed=args.seed, out=args.out, samples_per_epoch=args.samples_per_epoch
+            )
+        else:
+            from .kitchens import KITCHEN_NAMES
+
+            torch.set_num_threads(min(2, os.cpu_count() or 1))
+            for kitchen in args.kitchens or KITCHEN_NAMES:
+                start = time.perf_counter()
+                n = len(state_features(kitchen))
+                seconds = time.perf_counter() - start
+                print(
+                    f"{kitchen:12s} {n:6d} states  {seconds:5.1f} s  ({n / max(seconds, 1e-9):,.0f} states/s)"
+                )
+    except ValueError as e:  # ModelError, KitchenError, TaskError
+        print(f"kgnavbench: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1236 @@
+"""Stage 8 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
+imitation learning (IL), target skill extension (TSE), checkpoints, logs and resumption.
+
+Read it top to bottom:
+
+1. Options and runs. `TrainOptions` holds every option a learned method shares (a plugin's `Config`
+   extends it); `train_method` resolves a plugin's config into a run directory
+   `runs/train/<method>-<hash>/` (a hash of the config, the plugin's source, frames, seed and
+   kitchens), writes `config.json` once with the git revision, and calls the plugin's `train` hook.
+2. The state space. The training kitchens' state graphs are concatenated into one global state space
+   (per kitchen an offset into one next-state table, one success table, the object vectors and the
+   per-state features of `models.state_features`), so `Navigators.step` — one step of every agent in
+   every kitchen — is a handful of NumPy gathers with exactly the env's semantics (kgnavbench/env.py:
+   -0.01 per step, +0.01 on the first arrival at a goal state, +10 on success, Stop ends the episode,
+   starts at pitch 0 without the target in view and at least 10 actions from its destination).
+3. The losses. `n_step_returns`, `actor_critic_loss` (policy gradient, value loss with weight
+   `value_weight`, entropy bonus; optional per-sample weights for TSE's importance weights) and
+   `imitation_loss` (cross-entropy on expert actions).
+4. IL data (one expert trajectory per training target) and TSE relabelling (`novel_subtargets`,
+   `relabel`): sub-targets are states of the agents' own episodes that show a novel object (a
+   pickupable that is no training target, or another agent's target); each becomes "reach this state
+   and Stop", with its view as the target image, rewards recomputed and a final Stop worth +10.
+5. `Trainer`: the rollout (20 steps of all agents, forward passes with autograd, one backward per
+   rollout), the IL and TSE passes, validation on fixed episodes, and the checkpoint (model,
+   optimiser, every RNG, every agent's episode and LSTM state, the co-visibility counts): a run killed
+   at any moment resumes from `last.pt` exactly as if it had never stopped.
+6. `learn`: the loop, `metrics.csv`, progress lines, `last.pt` / `best.pt` (best validation SR).
+7. `LearnedPolicy`: a trained checkpoint as a plugin policy, batched over all agents of one `act`.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import io
+import json
+import math
+import random
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from . import models
+from .env import ARRIVAL_REWARD, STEP_REWARD, SUCCESS_REWARD, SUCCESS_RULES, TRAINING_MAX_STEPS
+from .kitchens import KITCHEN_NAMES, atomic_write, check_name, object_types
+from .plugins import load_plugin
+from .tasks import (
+    MIN_START_DISTANCE,
+    MOVES,
+    START_PITCH,
+    STOP,
+    KitchenTasks,
+    load_task_file,
+    load_tasks,
+    shortest_trajectory,
+    walk_back_trajectory,
+)
+
+CHECKPOINT_FORMAT = 1
+VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
+EXPERTS = ("walk_back", "shortest")
+KG_GRAPHS = ("accumulated", "per_step")
+METRICS = (
+    "frames",
+    "seconds",
+    "frames_per_s",
+    "updates",
+    "episodes",
+    "mean_reward",
+    "mean_return",
+    "success_rate",
+    "rl_loss",
+    "il_loss",
+    "tse_loss",
+    "val_sr",
+    "val_spl",
+)
+
+
+class TrainError(ValueError):
+    """Bad training input or state: a bad option, a run directory holding another config, a corrupt
+    checkpoint. Reported as one line."""
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. Options and runs
+
+
+@dataclass
+class TrainOptions:
+    """Options every learned method shares (`--set key=value`). A plugin's Config extends this."""
+
+    success_rule: str = "destination"  # the paper's: Stop at the destination; "visible": SAVN's
+    agents_per_kitchen: int = 64  # agents per training kitchen, all stepped at once
+    n_steps: int = 20  # rollout length: n-step returns
+    lr: float = 7e-4  # Adam
+    gamma: float = 0.99
+    value_weight: float = 0.5  # alpha: weight of the value loss
+    entropy: float = 0.01  # weight of the entropy bonus
+    max_grad_norm: float = 10.0
+    bf16: bool = True  # bfloat16 autocast (CPU)
+    hidden: int = 256  # siamese / fusion width
+    lstm: int = 256
+    # imitation learning: cross-entropy on one expert trajectory per training target
+    il: bool = False
+    il_expert: str = "walk_back"  # the paper's walk-back expert, or "shortest" (BFS-optimal)
+    il_walk: int = 20  # walk-back steps from the destination
+    il_frames: int = 2_000_000  # IL is mixed into the loss until this many frames ("online")
+    il_batch: int = 32  # expert trajectories per update
+    il_weight: float = 1.0
+    # target skill extension: relabelled sub-trajectories of the agents' own episodes
+    tse: bool = False
+    tse_subtargets: int = 5  # per episode at most
+    tse_window: int = 40  # steps before the sub-target that are relabelled
+    tse_batch: int = 64  # sub-trajectories per update
+    tse_weight: float = 1.0
+    tse_importance: bool = False  # truncated importance weights min(1, pi/mu)
+    # logs, checkpoints, validation
+    log_every: int = 200_000  # frames between metrics rows (and checkpoints)
+    val_every: int = 1_000_000  # frames between validations (and at the end)
+    val_kitchens: int = 5  # the first N validation kitchens
+    val_episodes: int = 5  # the first N fixed episodes per target
+    threads: int = 2
+
+    def __post_init__(self) -> None:
+        self.check()  # a bad option fails when the config is made, before a run directory exists
+
+    def check(self) -> None:
+        if self.success_rule not in SUCCESS_RULES:
+            raise TrainError(f"success_rule must be one of {SUCCESS_RULES}, not {self.success_rule!r}")
+        if self.il_expert not in EXPERTS:
+            raise TrainError(f"il_expert must be one of {EXPERTS}, not {self.il_expert!r}")
+        positive = (
+            "agents_per_kitchen n_steps hidden lstm il_batch tse_window tse_batch log_every val_every "
+            "val_kitchens val_episodes threads il_walk"
+        )
+        for name in positive.split():
+            if getattr(self, name) < 1:
+                raise TrainError(f"{name} must be at least 1, not {getattr(self, name)}")
+        if not (0 < self.gamma <= 1 and self.lr > 0 and self.max_grad_norm > 0):
+            raise TrainError("need 0 < gamma <= 1, lr > 0 and max_grad_norm > 0")
+        if self.tse_subtargets < 0 or self.il_frames < 0:
+            raise TrainError("tse_subtargets and il_frames must not be negative")
+
+
+@dataclass(frozen=True)
+class Run:
+    """Where and how long a plugin's `train` hook trains."""
+
+    directory: Path
+    method: str
+    frames: int
+    seed: int
+    kitchens: tuple[str, ...]  # training kitchens (their seen targets only)
+    progress: Callable[[str], None] = print
+
+
+def git_revision() -> str:
+    """HEAD's commit, '-dirty' when tracked files differ from it; 'unknown' outside a checkout."""
+
+    def git(*args: str) -> str:
+        out = subprocess.run(
+            ["git", *args], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=10
+        )
+        return out.stdout.strip()
+
+    try:
+        rev = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (rev + ("-dirty" if dirty else "")) if rev else "unknown"
+
+
+def training_kitchens(kitchens=()) -> tuple[str, ...]:
+    """The training kitchens to train on: all of the split, or the given ones (each must be one)."""
+    train = load_task_file()["splits"]["train"]
+    if not kitchens:
+        return tuple(sorted(train, key=KITCHEN_NAMES.index))
+    for k in kitchens:
+        check_name(k)
+        if k not in train:
+            raise TrainError(f"{k} is not a training kitchen (training kitchens: {', '.join(train)})")
+    return tuple(dict.fromkeys(kitchens))
+
+
+def run_record(plugin, config, frames: int, seed: int, kitchens: tuple[str, ...]) -> dict:
+    """What decides a run: its hash names the run directory."""
+    return {
+        "method": plugin.name,
+        "options": json.loads(json.dumps(asdict(config))),
+        "plugin_source_sha256": hashlib.sha256(plugin.source_bytes()).hexdigest(),
+        "frames": frames,
+        "seed": seed,
+        "kitchens": list(kitchens),
+    }
+
+
+def run_directory(runs_dir: Path | str, record: dict) -> Path:
+    digest = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:10]
+    return Path(runs_dir) / "train" / f"{record['method']}-{digest}"
+
+
+def train_method(
+    method: str,
+    options: dict[str, str] | None = None,
+    frames: int = 10_000_000,
+    seed: int = 0,
+    kitchens=(),
+    runs_dir: Path | str = "runs",
+    progress: Callable[[str], None] = print,
+) -> Path:
+    """Train METHOD (or resume its run, or find it finished) and return the run directory."""
+    plugin = load_plugin(method)
+    hook = getattr(plugin.module, "train", None)
+    if not callable(hook):
+        raise TrainError(f"{method} does not train: {plugin.source} defines no train(config, run)")
+    if frames < 1:
+        raise TrainError(f"frames must be positive, not {frames}")
+    config = plugin.config(options or {})
+    kitchens = training_kitchens(kitchens)
+    record = run_record(plugin, config, frames, seed, kitchens)
+    directory = run_directory(runs_dir, record)
+    if (directory / "finished.json").exists():
+        progress(f"{directory} is a finished run of {frames:,} frames; nothing to do")
+        return directory
+    config_path = directory / "config.json"
+    if config_path.exists():
+        try:
+            old = json.loads(config_path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise TrainError(f"{config_path} is unreadable ({e}); delete {directory} to start over") from e
+        old_record = {k: v for k, v in old.items() if k != "git_revision"}
+        if old_record != record:
+            differ = sorted(k for k in set(record) | set(old_record) if record.get(k) != old_record.get(k))
+            raise TrainError(
+                f"{directory} holds a run with another config (differs in {', '.join(differ)}); "
+                "refusing to resume it: delete it or use another --runs folder"
+            )
+    else:
+        atomic_write(config_path, json.dumps({**record, "git_revision": git_revision()}, indent=2) + "\n")
+    hook(config, Run(directory, method, frames, seed, kitchens, progress))
+    return directory
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. The state space: the kitchens' state graphs as one, and navigators stepping in it
+
+
+@dataclass
+class StateSpace:
+    """Several kitchens' state graphs as one: global state = kitchen offset + local state."""
+
+    kitchens: list[str]
+    offsets: np.ndarray  # (K + 1,)
+    next_state: np.ndarray  # (S, 10) global next state per action
+    ok: np.ndarray  # (S, 10) the action succeeded
+    objects: np.ndarray  # (S, 125) uint8, visible object types
+    features: np.ndarray  # (S, F) float16, the frozen encoder's features of each state's view
+    kitchen_of: np.ndarray  # (S,)
+    closed: np.ndarray  # (S,) no receptacle open
+    # targets: one row per target
+    target_ids: list[str]
+    target_kitchen: np.ndarray  # (T,)
+    target_type: np.ndarray  # (T,) object type index
+    destination: np.ndarray  # (T,) global state
+    goal: np.ndarray  # (T, S) success states under the rule (for the +0.01 and +10)
+    visible: np.ndarray  # (T, S) the target is in view
+    dist: np.ndarray  # (T, S) int32 BFS actions to a goal state (-1: none)
+    start_flat: np.ndarray  # training starts of target t: start_flat[start_ptr[t]:start_ptr[t + 1]]
+    start_ptr: np.ndarray
+    fixed_starts: list[tuple[int, ...]]  # the task file's episodes (global states)
+    kitchen_rows: np.ndarray  # target rows of kitchen k: kitchen_rows[kitchen_ptr[k]:kitchen_ptr[k + 1]]
+    kitchen_ptr: np.ndarray
+    tse_types: np.ndarray  # (K, 125) pickupable types that are no training target of the kitchen
+    tasks: list[KitchenTasks] = field(repr=False)
+
+    @property
+    def n_states(self) -> int:
+        return len(self.next_state)
+
+    def __post_init__(self) -> None:
+        self.features_t = torch.from_numpy(self.features.astype(np.float32))
+        self.objects_t = torch.from_numpy(self.objects.astype(np.float32))
+
+
+def build_space(kitchens, targets: str = "seen", success_rule: str = "destination") -> StateSpace:
+    """Load the kitchens' state graphs, features and targets ('seen': training targets; 'all')."""
+    types = {t: i for i, t in enumerate(object_types())}
+    parts, rows, offsets, all_tasks = [], [], [0], []
+    tse_types = np.zeros((len(kitchens), len(types)), bool)
+    for k, name in enumerate(kitchens):
+        kt = load_tasks(name)
+        g, off = kt.graph, offsets[-1]
+        feats = np.asarray(models.state_features(name))
+        if feats.shape[0] != g.n_states:
+            raise TrainError(f"features of {name} have {feats.shape[0]} rows for {g.n_states} states")
+        chosen = [t for t in kt.targets if targets == "all" or t.seen]
+        if not chosen:
+            raise TrainError(f"{name} has no {targets} targets")
+        training_types = {t.type for t in kt.targets if t.seen}
+        for o in g.world.objects:
+            if o.pickupable and o.type not in training_types:
+                tse_types[k, types[o.type]] = True
+        parts.append((g, feats, kt))
+        rows += [(k, off, kt, t) for t in chosen]
+        offsets.append(off + g.n_states)
+        all_tasks.append(kt)
+    n = offsets[-1]
+    n_targets = len(rows)
+    goal = np.zeros((n_targets, n), bool)
+    visible = np.zeros((n_targets, n), bool)
+    dist = np.full((n_targets, n), -1, np.int32)
+    starts, start_ptr, fixed = [], [0], []
+    for r, (_, off, kt, t) in enumerate(rows):
+        g = kt.graph
+        m = g.n_states
+        visible[r, off + np.array(t.goal_states)] = True
+        if success_rule == "visible":
+            goal[r] = visible[r]
+        else:
+            goal[r, off + t.destination] = True
+        dist[r, off : off + m] = kt.distances(t, success_rule)
+        # training starts, exactly as env._draw_episode draws them
+        d = kt.distances(t, "destination")
+        ok = (np.arange(m) < g.n_closed) & (g.pitch == START_PITCH) & ~visible[r, off : off + m]
+        far = np.flatnonzero(ok & (d >= MIN_START_DISTANCE))
+        if len(far) == 0:
+            far = np.flatnonzero(ok & (d == d[ok].max()))
+        starts.append(far + off)
+        start_ptr.append(start_ptr[-1] + len(far))
+        fixed.append(tuple(int(s) + off for s in t.starts))
+    target_kitchen = np.array([r[0] for r in rows], np.int64)
+    order = np.argsort(target_kitchen, kind="stable")
+    return StateSpace(
+        kitchens=list(kitchens),
+        offsets=np.array(offsets, np.int64),
+        next_state=np.concatenate([g.next_state + off for (g, _, _), off in zip(parts, offsets)]),
+        ok=np.concatenate([g.ok for g, _, _ in parts]),
+        objects=np.concatenate([g.object_vectors for g, _, _ in parts]),
+        features=np.concatenate([f for _, f, _ in parts]),
+        kitchen_of=np.repeat(np.arange(len(kitchens)), np.diff(offsets)),
+        closed=np.concatenate([g.opened < 0 for g, _, _ in parts]),
+        target_ids=[t.object_id for _, _, _, t in rows],
+        target_kitchen=target_kitchen,
+        target_type=np.array([types[t.type] for _, _, _, t in rows], np.int64),
+        destination=np.array([off + t.destination for _, off, _, t in rows], np.int64),
+        goal=goal,
+        visible=visible,
+        dist=dist,
+        start_flat=np.concatenate(starts).astype(np.int64),
+        start_ptr=np.array(start_ptr, np.int64),
+        fixed_starts=fixed,
+        kitchen_rows=order.astype(np.int64),
+        kitchen_ptr=np.searchsorted(target_kitchen[order], np.arange(len(kitchens) + 1)).astype(np.int64),
+        tse_types=tse_types,
+        tasks=all_tasks,
+    )
+
+
+IS_MOVE = np.isin(np.arange(10), MOVES)
+
+
+def step_rewards(first_arrival: np.ndarray, success: np.ndarray) -> np.ndarray:
+    """The env's reward: -0.01 per step, +0.01 on the first arrival at a goal state, +10 on success."""
+    return STEP_REWARD + ARRIVAL_REWARD * first_arrival + SUCCESS_REWARD * success
+
+
+class Navigators:
+    """Agents in a StateSpace, each in its own episode: env.step for all of them as array gathers.
+    A finished agent stays where it is until the caller starts its next episode (`draw`/`begin`)."""
+
+    FIELDS = (
+        "kitchen", "target", "state", "start", "steps", "path", "collisions", "success", "arrived", "cap",
+        "episode_return",
+    )  # fmt: skip
+
+    def __init__(self, space: StateSpace, kitchen: np.ndarray, stop_ends: bool = True):
+        n = len(kitchen)
+        self.space, self.stop_ends, self.n = space, stop_ends, n
+        self.kitchen = np.asarray(kitchen, np.int64).copy()
+        for name in ("target", "state", "start", "steps", "path", "collisions", "cap"):
+            setattr(self, name, np.zeros(n, np.int64))
+        self.success = np.zeros(n, bool)
+        self.arrived = np.zeros(n, bool)
+        self.episode_return = np.zeros(n, np.float64)
+
+    def begin(self, idx: np.ndarray, targets: np.ndarray, starts: np.ndarray, caps) -> None:
+        """Start episodes: agents idx get these targets (rows), start states and caps."""
+        self.target[idx], self.state[idx], self.start[idx], self.cap[idx] = targets, starts, starts, caps
+        for name in ("steps", "path", "collisions"):
+            getattr(self, name)[idx] = 0
+        self.success[idx] = False
+        self.arrived[idx] = self.space.goal[targets, starts]
+        self.episode_return[idx] = 0.0
+
+    def draw(self, idx: np.ndarray, rng: np.random.Generator, cap: int) -> None:
+        """Training episodes as the env draws them: a target of the agent's kitchen, then a start."""
+        sp = self.space
+        k = self.kitchen[idx]
+        lo = sp.kitchen_ptr[k]
+        targets = sp.kitchen_rows[lo + rng.integers(0, sp.kitchen_ptr[k + 1] - lo)]
+        lo = sp.start_ptr[targets]
+        starts = sp.start_flat[lo + rng.integers(0, sp.start_ptr[targets + 1] - lo)]
+        self.begin(idx, targets, starts, cap)
+
+    def step(self, actions: np.ndarray, idx: np.ndarray | None = None):
+        """One action per agent (of idx, or all): rewards, terminated, truncated, as env.step."""
+        sel = slice(None) if idx is None else idx
+        sp = self.space
+        state, target = self.state[sel], self.target[sel]
+        nxt = sp.next_state[state, actions]
+        ok = sp.ok[state, actions]
+        stop = actions == STOP
+        on_goal = sp.goal[target, nxt]
+        success = stop & on_goal
+        first_arrival = on_goal & ~self.arrived[sel]
+        rewards = step_rewards(first_arrival, success)
+        self.state[sel] = nxt
+        self.steps[sel] += 1
+        self.path[sel] += ~stop
+        self.collisions[sel] += IS_MOVE[actions] & ~ok
+        self.arrived[sel] |= on_goal
+        self.success[sel] = success
+        self.episode_return[sel] += rewards
+        terminated = success | (stop & self.stop_ends)
+        truncated = ~terminated & (self.steps[sel] >= self.cap[sel])
+        return rewards, terminated, truncated
+
+    def state_dict(self) -> dict:
+        return {name: torch.from_numpy(getattr(self, name).copy()) for name in self.FIELDS}
+
+    def load_state_dict(self, d: dict) -> None:
+        for name in self.FIELDS:
+            value = d[name].numpy()
+            if value.shape != getattr(self, name).shape:
+                raise ValueError(
+                    f"agents' {name} has shape {value.shape}, expected {getattr(self, name).shape}"
+                )
+            setattr(self, name, value.copy())
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. The losses
+
+
+def n_step_returns(rewards: torch.Tensor, dones: torch.Tensor, bootstrap: torch.Tensor, gamma: float):
+    """(T, B) rewards and done flags (the episode ended at that step), (B,) value of the state after
+    the last step: R_t = r_t + gamma * R_{t+1} * (1 - done_t), R_T = bootstrap."""
+    returns = torch.empty_like(rewards)
+    running = bootstrap
+    for t in range(rewards.shape[0] - 1, -1, -1):
+        running = rewards[t] + gamma * running * (1.0 - dones[t])
+        returns[t] = running
+    return returns
+
+
+def actor_critic_loss(
+    log_prob: torch.Tensor,
+    value: torch.Tensor,
+    entropy: torch.Tensor,
+    returns: torch.Tensor,
+    value_weight: float,
+    entropy_weight: float,
+    weights: torch.Tensor | None = None,
+    mask: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, dict]:
+    """A3C's loss over any batch of (taken action's log-prob, value, entropy, return): policy gradient
+    with advantage R - V (weighted per sample by `weights`: TSE's importance weights), value loss
+    0.5 (R - V)^2 with weight alpha, minus the entropy bonus; `mask` drops padding."""
+    mask = torch.ones_like(value) if mask is None else mask
+    weights = torch.ones_like(value) if weights is None else weights
+    n = mask.sum().clamp(min=1.0)
+    advantage = (returns - value).detach()
+    policy = -(weights * log_prob * advantage * mask).sum() / n
+    value_loss = 0.5 * (((returns - value) ** 2) * mask).sum() / n
+    bonus = (entropy * mask).sum() / n
+    loss = policy + value_weight * value_loss - entropy_weight * bonus
+    return loss, {"policy": float(policy), "value": float(value_loss), "entropy": float(bonus)}
+
+
+def imitation_loss(logits: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of the expert's actions, padding masked out."""
+    ce = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), actions.reshape(-1), reduction="none")
+    return (ce * mask.reshape(-1)).sum() / mask.sum().clamp(min=1.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. IL data and TSE relabelling
+
+
+@dataclass
+class Sequences:
+    """Padded sequences for a separate pass of the model: states[i, t] where actions[i, t] is taken,
+    toward the goal state goal[i] (whose view is the target image)."""
+
+    states: np.ndarray  # (N, L) global states
+    actions: np.ndarray  # (N, L)
+    mask: np.ndarray  # (N, L) bool, False on padding
+    goal: np.ndarray  # (N,) global state: the target image's state
+    rewards: np.ndarray | None = None  # (N, L)
+    behaviour: np.ndarray | None = None  # (N, L) behaviour policy's probability (NaN: not taken by it)
+
+
+def pad(seqs: list[tuple[list[int], list[int]]], goals, extra=None) -> Sequences:
+    n, length = len(seqs), max(len(a) for _, a in seqs)
+    states = np.zeros((n, length), np.int64)
+    actions = np.zeros((n, length), np.int64)
+    mask = np.zeros((n, length), bool)
+    for i, (s, a) in enumerate(seqs):
+        states[i, : len(s)], actions[i, : len(a)], mask[i, : len(a)] = s, a, True
+        states[i, len(s) :] = s[-1]
+    return Sequences(states, actions, mask, np.asarray(goals, np.int64), **(extra or {}))
+
+
+def expert_sequences(space: StateSpace, expert: str, walk: int, rng: np.random.Generator) -> Sequences:
+    """One expert trajectory per target of the space: the paper's walk-back from the destination
+    (`walk` steps back, reversed), or the BFS-optimal path from a training start drawn by rng."""
+    seqs = []
+    for r in range(len(space.target_ids)):
+        k = space.target_kitchen[r]
+        off, kt = space.offsets[k], space.tasks[k]
+        dest = int(space.destination[r])
+        if expert == "walk_back":
+            start, actions = walk_back_trajectory(kt.graph, dest - off, walk)
+            start += off
+        else:
+            lo, hi = space.start_ptr[r], space.start_ptr[r + 1]
+            start = int(space.start_flat[lo + rng.integers(hi - lo)])
+            actions = shortest_trajectory(space.next_state, space.dist[r], start)
+        states = [int(start)]
+        for a in actions[:-1]:
+            states.append(int(space.next_state[states[-1], a]))
+        if not space.goal[r, states[-1]]:
+            raise TrainError(f"the {expert} expert of {space.target_ids[r]} does not end at its destination")
+        seqs.append((states, actions))
+    return pad(seqs, space.destination)
+
+
+def novel_subtargets(
+    seen: np.ndarray, objects_after: np.ndarray, eligible: np.ndarray, count: np.ndarray, limit: int
+) -> np.ndarray:
+    """TSE's sub-target test for one step of a batch of episodes: the state just reached is a
+    sub-target when it shows an eligible object type not seen before in the episode and the episode has
+    fewer than `limit` sub-targets. Updates `seen` and `count` in place; returns the mask of agents."""
+    after = objects_after.astype(bool)
+    fire = (after & ~seen & eligible).any(axis=1) & (count < limit)
+    seen |= after
+    count += fire
+    return fire
+
+
+def relabel(states, actions, behaviour, goal: int) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
+    """HER-style: a walk states[0] -a0-> states[1] ... -a_{m-1}-> states[m] == goal becomes the task
+    "reach goal and Stop": the same actions plus a final Stop at goal, rewards recomputed with the
+    env's reward function (goal = that one state), the Stop succeeding (+10). Returns states (m + 1),
+    actions (m + 1), rewards (m + 1) and the behaviour probabilities (NaN for the added Stop)."""
+    states, actions = [int(s) for s in states], [int(a) for a in actions]
+    if states[-1] != goal or len(states) != len(actions) + 1:
+        raise ValueError("relabel needs states[0..m] ending at the goal and m actions")
+    after = np.array(states[1:] + [goal])
+    on_goal = after == goal
+    reached_before = np.concatenate([[states[0] == goal], np.logical_or.accumulate(on_goal)[:-1]])
+    success = np.zeros(len(after), bool)
+    success[-1] = True
+    rewards = step_rewards(on_goal & ~reached_before, success)
+    return states, actions + [STOP], rewards, np.append(np.asarray(behaviour, np.float64), np.nan)
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. The trainer
+
+
+def _detach(hidden):
+    return None if hidden is None else tuple(h.detach() for h in hidden)
+
+
+def _rows(hidden, idx):
+    return None if hidden is None else tuple(h[idx] for h in hidden)
+
+
+def _keep(hidden, keep: torch.Tensor):
+    return None if hidden is None else tuple(h * keep.view(-1, *([1] * (h.dim() - 1))) for h in hidden)
+
+
+class Model:
+    """The actor-critic with what it needs around it: features and object vectors of a state space,
+    the knowledge graph, frame histories (FF) and scene ids."""
+
+    def __init__(self, net, config: models.ModelConfig, covis, bf16: bool):
+        self.net, self.config, self.covis, self.bf16 = net, config, covis, bf16
+        self.uses_graph = config.kg != "none" and config.kg_graph == "accumulated"
+
+    def adjacency(self) -> torch.Tensor | None:
+        if not self.uses_graph:
+            return None
+        return torch.as_tensor(np.asarray(self.covis.adjacency()), dtype=torch.float32)
+
+    def __call__(self, space: StateSpace, states, goals, hidden, adjacency, scene=None, history=None):
+        """One forward pass: agents in `states` (or their frame `history` (B, H) for FF) toward the
+        target images of `goals` (states)."""
+        s = torch.from_numpy(np.ascontiguousarray(states))
+        g = torch.from_numpy(np.ascontiguousarray(goals))
+        view = space.features_t[torch.from_numpy(history)] if history is not None else space.features_t[s]
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+            logits, value, hidden, extras = self.net(
+                view,
+                space.features_t[g],
+                space.objects_t[s],
+                space.objects_t[g],
+                hidden,
+                adjacency=adjacency,
+                scene=None if scene is None else torch.from_numpy(np.ascontiguousarray(scene)),
+            )
+        return logits.float(), value.float(), hidden, extras
+
+
+class Trainer:
+    """A2C over all training kitchens at once, with optional IL and TSE; its whole state checkpoints."""
+
+    def __init__(self, run: Run, options: TrainOptions, model_config: models.ModelConfig, rl: bool):
+        self.run, self.opts, self.rl = run, options, rl
+        self.kitchens = list(run.kitchens)
+        self.model_config = dataclasses.replace(model_config, n_scenes=len(self.kitchens))
+        self.ff = self.model_config.arch == "ff"
+        self.space = build_space(self.kitchens, "seen", options.success_rule)
+        # seeded after build_space: encoding features on a cache miss draws from torch's generator
+        torch.manual_seed(run.seed)
+        net = models.make_model(self.model_config)
+        self.model = Model(net, self.model_config, models.CoVisibility(), options.bf16)
+        self.optimizer = torch.optim.Adam(net.parameters(), lr=options.lr)
+        self.rng = np.random.default_rng(run.seed)
+        self.generator = torch.Generator().manual_seed(run.seed)
+        self.frames = self.updates = 0
+        self.best_val_sr = -1.0
+        self.stats = self._empty_stats()
+        self.val_space: StateSpace | None = None
+        n_agents = options.agents_per_kitchen * len(self.kitchens)
+        self.nav = Navigators(
+            self.space, np.repeat(np.arange(len(self.kitchens)), options.agents_per_kitchen)
+        )
+        self.cap = TRAINING_MAX_STEPS
+        self.nav.draw(np.arange(n_agents), self.rng, self.cap)
+        self.hidden = net.initial_state(n_agents)
+        self.history = np.repeat(self.nav.state[:, None], self.model_config.history, 1) if self.ff else None
+        # TSE: per agent the types seen this episode, sub-targets so far, and a ring of recent steps
+        self.ring = options.tse_window + options.n_steps
+        self.tick = 0
+        self.seen = self.space.objects[self.nav.state].astype(bool)
+        self.subtargets = np.zeros(n_agents, np.int64)
+        self.episode_tick = np.zeros(n_agents, np.int64)
+        self.ring_state = np.zeros((n_agents, self.ring), np.int64)
+        self.ring_action = np.zeros((n_agents, self.ring), np.int64)
+        self.ring_prob = np.zeros((n_agents, self.ring), np.float64)
+        self.candidates: list[tuple[int, int, int, int]] = []  # (agent, tick, episode tick, sub-target)
+        self.experts = (
+            expert_sequences(
+                self.space, options.il_expert, options.il_walk, np.random.default_rng([run.seed, 1])
+            )
+            if options.il or not rl
+            else None
+        )
+
+    @staticmethod
+    def _empty_stats() -> dict:
+        keys = (
+            "frames", "reward", "episodes", "successes", "returns", "rl", "il", "tse",
+            "losses_rl", "losses_il", "losses_tse",
+        )  # fmt: skip
+        return dict.fromkeys(keys, 0.0)
+
+    # -- one update ------------------------------------------------------------------------------
+    def update(self) -> None:
+        """One rollout of every agent (or, IL only, one expert batch) and one gradient step."""
+        adjacency = self.model.adjacency()
+        loss = torch.zeros(())
+        if self.rl:
+            rl_loss = self.rollout(adjacency)
+            loss = loss + rl_loss
+            self.stats["rl"] += float(rl_loss)
+            self.stats["losses_rl"] += 1
+        if self.experts is not None and (not self.rl or self.frames < self.opts.il_frames):
+            il_loss, n_frames = self.imitation(adjacency)
+            loss = loss + self.opts.il_weight * il_loss
+            self.stats["il"] += float(il_loss)
+            self.stats["losses_il"] += 1
+            if not self.rl:
+                self.frames += n_frames
+                self.stats["frames"] += n_frames
+        if self.rl and self.opts.tse:
+            tse_loss = self.skill_extension(adjacency)
+            if tse_loss is not None:
+                loss = loss + self.opts.tse_weight * tse_loss
+                self.stats["tse"] += float(tse_loss)
+                self.stats["losses_tse"] += 1
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(self.model.net.parameters(), self.opts.max_grad_norm)
+        self.optimizer.step()
+        self.updates += 1
+
+    def rollout(self, adjacency) -> torch.Tensor:
+        """n steps of every agent with autograd on; returns the A2C loss of the rollout."""
+        opts, nav, space = self.opts, self.nav, self.space
+        n, b = opts.n_steps, nav.n
+        log_probs, values, entropies = [], [], []
+        rewards = np.zeros((n, b), np.float32)
+        dones = np.zeros((n, b), np.float32)
+        hidden = _detach(self.hidden)
+        scene = nav.kitchen if self.ff else None
+        visited = []
+        for t in range(n):
+            goals = space.destination[nav.target]
+            logits, value, hidden, _ = self.model(
+                space, nav.state, goals, hidden, adjacency, scene, self.history
+            )
+            log_p = F.log_softmax(logits, -1)
+            probs = log_p.detach().exp()
+            action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
+            log_probs.append(log_p.gather(1, action[:, None]).squeeze(1))
+            entropies.append(-(log_p.exp() * log_p).sum(-1))
+            values.append(value)
+            a = action.numpy()
+            before = nav.state.copy()
+            r, terminated, truncated = nav.step(a)
+            done = terminated | truncated
+            rewards[t], dones[t] = r, done
+            visited.append(nav.state.copy())
+            if opts.tse:
+                self._record_tse(before, a, probs.gather(1, action[:, None]).squeeze(1).numpy())
+            self.tick += 1
+            finished = np.flatnonzero(done)
+            if len(finished):
+                self.stats["episodes"] += len(finished)
+                self.stats["successes"] += int(nav.success[finished].sum())
+                self.stats["returns"] += float(nav.episode_return[finished].sum())
+                self._new_episodes(finished)
+            hidden = _keep(hidden, torch.from_numpy(~done).float())
+            if self.ff:
+                self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
+                self.history[finished] = nav.state[finished, None]
+        with torch.no_grad():
+            goals = space.destination[nav.target]
+            _, bootstrap, _, _ = self.model(space, nav.state, goals, hidden, adjacency, scene, self.history)
+        self.hidden = _detach(hidden)
+        if self.model.uses_graph:
+            self.model.covis.add(space.objects[np.concatenate(visited)])
+        self.frames += n * b
+        self.stats["frames"] += n * b
+        self.stats["reward"] += float(rewards.sum())
+        returns = n_step_returns(torch.from_numpy(rewards), torch.from_numpy(dones), bootstrap, opts.gamma)
+        loss, _ = actor_critic_loss(
+            torch.stack(log_probs),
+            torch.stack(values),
+            torch.stack(entropies),
+            returns,
+            opts.value_weight,
+            opts.entropy,
+        )
+        return loss
+
+    def _new_episodes(self, idx: np.ndarray) -> None:
+        self.nav.draw(idx, self.rng, self.cap)
+        self.seen[idx] = self.space.objects[self.nav.state[idx]].astype(bool)
+        self.subtargets[idx] = 0
+        self.episode_tick[idx] = self.tick
+
+    def _record_tse(self, before: np.ndarray, actions: np.ndarray, probs: np.ndarray) -> None:
+        """Keep this step in the ring; note the agents whose new state is a sub-target."""
+        nav, space = self.nav, self.space
+        slot = self.tick % self.ring
+        self.ring_state[:, slot], self.ring_action[:, slot], self.ring_prob[:, slot] = before, actions, probs
+        # eligible: pickupable types that are no training target, and the other agents' target types
+        n_types = space.objects.shape[1]
+        own = space.target_type[nav.target]
+        counts = np.bincount(nav.kitchen * n_types + own, minlength=len(self.kitchens) * n_types)
+        counts = counts.reshape(len(self.kitchens), n_types)[nav.kitchen]
+        counts[np.arange(nav.n), own] -= 1
+        eligible = space.tse_types[nav.kitchen] | (counts > 0)
+        eligible[np.arange(nav.n), own] = False
+        fire = novel_subtargets(
+            self.seen, space.objects[nav.state], eligible, self.subtargets, self.opts.tse_subtargets
+        )
+        for i in np.flatnonzero(fire):
+            self.candidates.append((int(i), self.tick, int(self.episode_tick[i]), int(nav.state[i])))
+
+    def subtrajectories(self) -> Sequences | None:
+        """Up to tse_batch of this rollout's sub-targets, relabelled; the rest are dropped."""
+        if not self.candidates:
+            return None
+        take = self.rng.choice(
+            len(self.candidates), min(self.opts.tse_batch, len(self.candidates)), replace=False
+        )
+        seqs, goals, rewards, behaviour = [], [], [], []
+        for j in sorted(take):
+            agent, tick, episode_tick, goal = self.candidates[j]
+            ticks = np.arange(max(episode_tick, tick - self.opts.tse_window + 1), tick + 1) % self.ring
+            states = list(self.ring_state[agent, ticks]) + [goal]
+            s, a, r, mu = relabel(states, self.ring_action[agent, ticks], self.ring_prob[agent, ticks], goal)
+            seqs.append((s, a))
+            goals.append(goal)
+            rewards.append(r)
+            behaviour.append(mu)
+        self.candidates = []
+        seq = pad(seqs, goals)
+        seq.rewards = np.zeros(seq.states.shape, np.float32)
+        seq.behaviour = np.full(seq.states.shape, np.nan)
+        for i, (r, mu) in enumerate(zip(rewards, behaviour)):
+            seq.rewards[i, : len(r)], seq.behaviour[i, : len(mu)] = r, mu
+        return seq
+
+    def sequence_pass(self, seq: Sequences, adjacency):
+        """A separate pass of the model over padded sequences from a zero state: logits (L, N, 10),
+        values (L, N)."""
+        n, length = seq.states.shape
+        hidden = self.model.net.initial_state(n)
+        scene = self.space.kitchen_of[seq.states[:, 0]] if self.ff else None
+        logits, values = [], []
+        for t in range(length):
+            history = None
+            if self.ff:
+                cols = np.clip(np.arange(t - self.model_config.history + 1, t + 1), 0, None)
+                history = seq.states[:, cols]
+            lg, v, hidden, _ = self.model(
+                self.space, seq.states[:, t], seq.goal, hidden, adjacency, scene, history
+            )
+            logits.append(lg)
+            values.append(v)
+        return torch.stack(logits), torch.stack(values)
+
+    def imitation(self, adjacency) -> tuple[torch.Tensor, int]:
+        """Cross-entropy on il_batch expert trajectories drawn at random."""
+        ex = self.experts
+        n = len(ex.goal)
+        take = torch.randperm(n, generator=self.generator)[: min(self.opts.il_batch, n)].sort().values.numpy()
+        seq = Sequences(ex.states[take], ex.actions[take], ex.mask[take], ex.goal[take])
+        last = int(seq.mask.sum(1).max())
+        seq = Sequences(seq.states[:, :last], seq.actions[:, :last], seq.mask[:, :last], seq.goal)
+        logits, _ = self.sequence_pass(seq, adjacency)
+        mask = torch.from_numpy(seq.mask.T.astype(np.float32))
+        return imitation_loss(logits, torch.from_numpy(seq.actions.T.copy()), mask), int(seq.mask.sum())
+
+    def skill_extension(self, adjacency) -> torch.Tensor | None:
+        """A2C's loss on this rollout's relabelled sub-trajectories (whole episodes: Monte-Carlo
+        returns), optionally with truncated importance weights min(1, pi/mu)."""
+        seq = self.subtrajectories()
+        if seq is None:
+            return None
+        logits, values = self.sequence_pass(seq, adjacency)
+        log_p = F.log_softmax(logits, -1)
+        actions = torch.from_numpy(seq.actions.T.copy())
+        taken = log_p.gather(2, actions[..., None]).squeeze(2)
+        entropy = -(log_p.exp() * log_p).sum(-1)
+        mask = torch.from_numpy(seq.mask.T.astype(np.float32))
+        rewards = torch.from_numpy(seq.rewards.T.copy())
+        dones = torch.zeros_like(rewards)
+        dones[torch.from_numpy(seq.mask.sum(1) - 1), torch.arange(len(seq.goal))] = 1.0
+        returns = n_step_returns(rewards, dones, torch.zeros(len(seq.goal)), self.opts.gamma)
+        weights = None
+        if self.opts.tse_importance:
+            mu = torch.from_numpy(seq.behaviour.T.copy()).float()
+            ratio = (taken.detach().exp() / mu).clamp(max=1.0)
+            weights = torch.where(torch.isnan(mu), torch.ones_like(ratio), ratio)
+        loss, _ = actor_critic_loss(
+            taken, values, entropy, returns, self.opts.value_weight, self.opts.entropy, weights, mask
+        )
+        return loss
+
+    # -- validation ------------------------------------------------------------------------------
+    def validate(self) -> tuple[float, float, int]:
+        """SR and SPL (percent) on the validation kitchens' fixed episodes (the first val_episodes per
+        target), cap 1000, under the success rule; its own seeded sampling, so training is untouched."""
+        if self.val_space is None:
+            names = load_task_file()["splits"]["val"][: self.opts.val_kitchens]
+            self.val_space = build_space(
+                sorted(names, key=KITCHEN_NAMES.index), "all", self.opts.success_rule
+            )
+        sp = self.val_space
+        rows = [(r, s) for r, starts in enumerate(sp.fixed_starts) for s in starts[: self.opts.val_episodes]]
+        targets = np.array([r for r, _ in rows], np.int64)
+        starts = np.array([s for _, s in rows], np.int64)
+        return run_episodes(self.model, sp, targets, starts, VALIDATION_CAP, self.run.seed, None)
+
+    # -- checkpoints -----------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "method": self.run.method,
+            "options": asdict(self.opts),
+            "model_config": asdict(self.model_config),
+            "kitchens": self.kitchens,
+            "seed": self.run.seed,
+            "frames": self.frames,
+            "updates": self.updates,
+            "tick": self.tick,
+            "best_val_sr": float(self.best_val_sr),
+            "stats": {k: float(v) for k, v in self.stats.items()},
+            "model": self.model.net.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "covis": self.model.covis.state_dict(),
+            "rng": {
+                "numpy": json.dumps(self.rng.bit_generator.state),  # plain data: weights_only loads it
+                "sampling": self.generator.get_state(),
+                "torch": torch.get_rng_state(),
+                "python": random.getstate(),
+            },
+            "agents": self.nav.state_dict(),
+            "hidden": self.hidden,
+            "history": None if self.history is None else torch.from_numpy(self.history.copy()),
+            "tse": {
+                name: torch.from_numpy(getattr(self, name).copy())
+                for name in ("seen", "subtargets", "episode_tick", "ring_state", "ring_action", "ring_prob")
+            },
+        }
+
+    def load_state_dict(self, ck: dict) -> None:
+        self.model.net.load_state_dict(ck["model"])
+        self.optimizer.load_state_dict(ck["optimizer"])
+        self.model.covis.load_state_dict(ck["covis"])
+        self.rng.bit_generator.state = json.loads(ck["rng"]["numpy"])
+        self.generator.set_state(ck["rng"]["sampling"])
+        torch.set_rng_state(ck["rng"]["torch"])
+        random.setstate(ck["rng"]["python"])
+        self.nav.load_state_dict(ck["agents"])
+        self.hidden = ck["hidden"]
+        self.history = None if ck["history"] is None else ck["history"].numpy().copy()
+        for name, value in ck["tse"].items():
+            setattr(self, name, value.numpy().copy())
+        self.frames, self.updates, self.tick = ck["frames"], ck["updates"], ck["tick"]
+        self.best_val_sr, self.stats = ck["best_val_sr"], dict(ck["stats"])
+
+
+def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, seed: int, scene_of=None):
+    """Run fixed episodes (target rows, start states) to the end with the model's sampled actions;
+    returns SR and SPL in percent and the frames taken. `scene_of` maps the space's kitchens to FF
+    scene ids (None: scene 0)."""
+    n = len(targets)
+    nav = Navigators(space, space.target_kitchen[targets])
+    nav.begin(np.arange(n), targets, starts, cap)
+    generator = torch.Generator().manual_seed(seed)
+    hidden = model.net.initial_state(n)
+    ff = model.config.arch == "ff"
+    history = np.repeat(starts[:, None], model.config.history, 1) if ff else None
+    scene = np.zeros(n, np.int64) if scene_of is None else np.asarray(scene_of)[nav.kitchen]
+    adjacency = model.adjacency()
+    live = np.ones(n, bool)
+    frames = 0
+    with torch.no_grad():
+        while live.any():
+            idx = np.flatnonzero(live)
+            goals = space.destination[nav.target[idx]]
+            logits, _, rows, _ = model(
+                space,
+                nav.state[idx],
+                goals,
+                _rows(hidden, idx),
+                adjacency,
+                scene[idx] if ff else None,
+                history[idx] if ff else None,
+            )
+            action = torch.multinomial(F.softmax(logits, -1), 1, generator=generator).squeeze(1).numpy()
+            if hidden is not None:
+                for h, r in zip(hidden, rows):
+                    h[idx] = r
+            _, terminated, truncated = nav.step(action, idx)
+            if ff:
+                history[idx] = np.concatenate([history[idx, 1:], nav.state[idx, None]], 1)
+            live[idx[terminated | truncated]] = False
+            frames += len(idx)
+    shortest = space.dist[targets, starts]
+    spl = nav.success * shortest / np.maximum(np.maximum(nav.path, shortest), 1)
+    return float(100.0 * nav.success.mean()), float(100.0 * spl.mean()), frames
+
+
+# ------------------------------------------------------------------------------------------------
+# 6. The loop: logs, checkpoints, resumption
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    def write(f) -> None:
+        buffer = io.BytesIO()
+        torch.save(state, buffer)
+        f.write(buffer.getvalue())
+
+    atomic_write(path, write)
+
+
+def load_checkpoint(path: Path | str) -> dict:
+    """A checkpoint written by `learn`; anything else is a TrainError naming the file."""
+    path = Path(path)
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError("not a kgnavbench checkpoint")
+        for key in ("model", "model_config", "covis", "kitchens", "frames"):
+            if key not in ck:
+                raise ValueError(f"no {key!r}")
+        return ck
+    except FileNotFoundError as e:
+        raise TrainError(f"checkpoint {path} does not exist") from e
+    except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, one line naming it
+        raise TrainError(
+            f"checkpoint {path} is corrupt ({type(e).__name__}: {models.first_line(e)}); "
+            "delete it to start over"
+        ) from e
+
+
+def _read_metrics(path: Path, up_to: int) -> list[dict]:
+    """The rows of metrics.csv up to a frame count (a resumed run drops what it will redo)."""
+    if not path.exists():
+        return []
+    rows = []
+    for row in csv.DictReader(path.read_text().splitlines()):
+        try:
+            if int(row["frames"]) <= up_to and None not in row.values():
+                rows.append(row)
+        except (KeyError, TypeError, ValueError):
+            continue
+    return rows
+
+
+def _csv_text(rows: list[dict]) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, METRICS)
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl: bool = True) -> Path:
+    """Train (or resume) a run: A2C (rl=True) with IL and TSE as the options say, or IL alone."""
+    options.check()
+    if model_config.kg_graph not in KG_GRAPHS:
+        raise TrainError(f"kg_graph must be one of {KG_GRAPHS}, not {model_config.kg_graph!r}")
+    torch.set_num_threads(options.threads)
+    progress = run.progress
+    trainer = Trainer(run, options, model_config, rl)
+    last, best = run.directory / "last.pt", run.directory / "best.pt"
+    metrics_path = run.directory / "metrics.csv"
+    if last.exists():
+        ck = load_checkpoint(last)
+        if ck["options"] != asdict(options) or ck["model_config"] != asdict(trainer.model_config):
+            raise TrainError(f"{last} was trained with another config; delete {run.directory} to start over")
+        try:
+            trainer.load_state_dict(ck)
+        except (KeyError, ValueError, RuntimeError, TypeError) as e:
+            raise TrainError(f"checkpoint {last} does not fit this run ({type(e).__name__}: {e})") from e
+        progress(f"resumed {run.directory} from {last.name} at {trainer.frames:,} frames")
+    rows = _read_metrics(metrics_path, trainer.frames)
+    atomic_write(metrics_path, _csv_text(rows))
+    every = options.log_every
+    next_log = (trainer.frames // every + 1) * every
+    next_val = (trainer.frames // options.val_every + 1) * options.val_every
+    agents = trainer.nav.n if rl else 0
+    progress(
+        f"training {run.method} on {len(trainer.kitchens)} kitchens "
+        f"({len(trainer.space.target_ids)} targets, "
+        f"{agents} agents) to {run.frames:,} frames; run {run.directory}"
+    )
+    t0, f0 = time.perf_counter(), trainer.frames
+    while trainer.frames < run.frames:
+        trainer.update()
+        done = trainer.frames >= run.frames
+        if trainer.frames < next_log and not done:
+            continue
+        next_log = (trainer.frames // every + 1) * every
+        val_sr = val_spl = float("nan")
+        if trainer.frames >= next_val or done:
+            next_val = (trainer.frames // options.val_every + 1) * options.val_every
+            tv = time.perf_counter()
+            val_sr, val_spl, val_frames = trainer.validate()
+            progress(
+                f"  validation: SR {val_sr:.1f}%, SPL {val_spl:.1f}% ({val_frames:,} frames in "
+                f"{time.perf_counter() - tv:.1f} s)"
+            )
+            if val_sr > trainer.best_val_sr:
+                trainer.best_val_sr = val_sr
+                save_checkpoint(best, {**trainer.state_dict(), "val_sr": val_sr, "val_spl": val_spl})
+        row = _metrics_row(trainer, time.perf_counter() - t0, trainer.frames - f0, val_sr, val_spl)
+        with open(metrics_path, "a") as f:
+            csv.DictWriter(f, METRICS).writerow(row)
+        trainer.stats = trainer._empty_stats()
+        save_checkpoint(last, trainer.state_dict())
+        progress(
+            f"{trainer.frames:>12,} frames  {row['frames_per_s']:>8} frames/s  "
+            f"reward/frame {row['mean_reward']}  "
+            f"SR(train episodes) {row['success_rate']}%  losses RL {row['rl_loss']} IL {row['il_loss']} "
+            f"TSE {row['tse_loss']}"
+        )
+    seconds = time.perf_counter() - t0
+    atomic_write(
+        run.directory / "finished.json",
+        json.dumps({"frames": trainer.frames, "best_val_sr": trainer.best_val_sr, "seconds": seconds}) + "\n",
+    )
+    progress(
+        f"finished {run.method}: {trainer.frames:,} frames, best validation SR {trainer.best_val_sr:.1f}%"
+    )
+    return run.directory
+
+
+def _metrics_row(trainer: Trainer, seconds: float, frames_done: int, val_sr: float, val_spl: float) -> dict:
+    s = trainer.stats
+
+    def mean(total: str, count: str) -> str:
+        return f"{s[total] / s[count]:.4f}" if s[count] else ""
+
+    return {
+        "frames": trainer.frames,
+        "seconds": f"{seconds:.1f}",
+        "frames_per_s": f"{frames_done / max(seconds, 1e-9):.0f}",
+        "updates": trainer.updates,
+        "episodes": int(s["episodes"]),
+        "mean_reward": mean("reward", "frames"),
+        "mean_return": mean("returns", "episodes"),
+        "success_rate": f"{100 * s['successes'] / s['episodes']:.2f}" if s["episodes"] else "",
+        "rl_loss": mean("rl", "losses_rl"),
+        "il_loss": mean("il", "losses_il"),
+        "tse_loss": mean("tse", "losses_tse"),
+        "val_sr": "" if math.isnan(val_sr) else f"{val_sr:.2f}",
+        "val_spl": "" if math.isnan(val_spl) else f"{val_spl:.2f}",
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# 7. A trained checkpoint as a plugin policy
+
+
+class LearnedPolicy:
+    """reset(agent) / act(observations, infos) for evaluation: one batched forward pass over all agents
+    of a call, an LSTM state (or FF frame history) per agent. Views are looked up as per-state features
+    through infos["state"] (the features are a function of the view; the kitchen is the one whose view
+    at that state is the observed one)."""
+
+    def __init__(self, checkpoint: Path | str, seed: int = 0):
+        ck = load_checkpoint(checkpoint)
+        self.config = models.ModelConfig(**ck["model_config"])
+        net = models.make_model(self.config)
+        try:
+            net.load_state_dict(ck["model"])
+        except (RuntimeError, KeyError) as e:
+            raise TrainError(f"checkpoint {checkpoint} does not fit its model ({e})") from e
+        net.eval()
+        covis = models.CoVisibility()
+        covis.load_state_dict(ck["covis"])
+        self.model = Model(net, self.config, covis, ck["options"].get("bf16", False))
+        self.adjacency = self.model.adjacency()
+        self.training_kitchens = list(ck["kitchens"])
+        self.success_rule = ck["options"].get("success_rule", "destination")
+        self.generator = torch.Generator().manual_seed(seed)
+        self.space: StateSpace | None = None
+        self.scene = 0
+        self.rows: dict[str, int] = {}
+        self.slot: dict[str, int] = {}
+        self.hidden = None  # (h, c) rows per slot; None for FF
+        self.history: np.ndarray | None = None  # FF: (slots, history) states
+        self.fresh: set[str] = set()
+
+    def reset(self, agent: str) -> None:
+        if agent not in self.slot:
+            self.slot[agent] = len(self.slot)
+            grown = self.model.net.initial_state(len(self.slot))
+            if grown is not None and self.hidden is not None:
+                grown = tuple(torch.cat([h, g[len(h) :]]) for h, g in zip(self.hidden, grown))
+            self.hidden = grown
+        i = self.slot[agent]
+        if self.hidden is not None:
+            for h in self.hidden:
+                h[i] = 0.0
+        self.fresh.add(agent)
+
+    def _load_kitchen(self, observations: dict, infos: dict) -> None:
+        agent = next(iter(observations))
+        state, target = int(infos[agent]["state"]), infos[agent]["target"]
+        view = np.asarray(observations[agent]["view"])
+        record = load_task_file()["kitchens"]
+        candidates = [k for k, r in record.items() if any(t["object"] == target for t in r["targets"])]
+        for k in sorted(candidates, key=KITCHEN_NAMES.index):
+            views = load_tasks(k).graph.views
+            if state < len(views) and np.array_equal(views[state], view):
+                self.space = build_space([k], "all", self.success_rule)
+                self.rows = {t: r for r, t in enumerate(self.space.target_ids)}
+                self.scene = self.training_kitchens.index(k) if k in self.training_kitchens else 0
+                return
+        raise TrainError(f"no kitchen shows the observed view at state {state} for target {target}")
+
+    def act(self, observations: dict, infos: dict) -> dict:
+        agents = list(observations)
+        if not agents:
+            return {}
+        if self.space is None:
+            self._load_kitchen(observations, infos)
+        states = np.fromiter((infos[a]["state"] for a in agents), np.int64, len(agents))
+        goals = self.space.destination[[self.rows[infos[a]["target"]] for a in agents]]
+        for a in agents:
+            if a not in self.slot:
+                self.reset(a)
+        slots = np.fromiter((self.slot[a] for a in agents), np.int64, len(agents))
+        history = None
+        if self.config.arch == "ff":
+            if self.history is None or len(self.history) < len(self.slot):
+                grown = np.zeros((len(self.slot), self.config.history), np.int64)
+                if self.history is not None:
+                    grown[: len(self.history)] = self.history
+                self.history = grown
+            for a, s in zip(agents, states):
+                if a in self.fresh:
+                    self.history[self.slot[a]] = s
+            self.history[slots] = np.concatenate([self.history[slots, 1:], states[:, None]], 1)
+            history = self.history[slots]
+        self.fresh.difference_update(agents)
+        scene = np.full(len(agents), self.scene, np.int64) if self.config.arch == "ff" else None
+        with torch.no_grad():
+            logits, _, rows, _ = self.model(
+                self.space, states, goals, _rows(self.hidden, slots), self.adjacency, scene, history
+            )
+            actions = torch.multinomial(F.softmax(logits, -1), 1, generator=self.generator).squeeze(1)
+        if self.hidden is not None:
+            for h, r in zip(self.hidden, rows):
+                h[slots] = r
+        return dict(zip(agents, actions.tolist()))
+
+
+def load_policy(checkpoint: Path | str | None, seed: int = 0) -> LearnedPolicy:
+    """The policy of a trained checkpoint (a learned plugin's make_policy)."""
+    if checkpoint is None:
+        raise TrainError(
+            "this method needs a trained checkpoint: run `kgnavbench train`, then eval --run DIR"
+        )
+    return LearnedPolicy(checkpoint, seed)

@@ -1,0 +1,397 @@
+"""The models stage: GCN normalisation, masked attention, the closed-form knowledge-graph branch against a
+literal per-sample implementation, every network's shapes, the co-visibility graph, the committed
+encoder and the per-state feature cache."""
+
+import os
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from kgnavbench import models
+from kgnavbench.models import (
+    ENCODER_FILE,
+    FEATURE_DIM,
+    CoVisibility,
+    Encoder,
+    ModelConfig,
+    ModelError,
+    ViewSet,
+    evaluate_encoder,
+    load_encoder,
+    make_model,
+    masked_softmax,
+    normalized_adjacency,
+    state_features,
+)
+from kgnavbench.tasks import state_graph
+
+N_TYPES = 125
+ALL_CONFIGS = [
+    (arch, kg, graph)
+    for arch in ("lstm", "ff")
+    for kg in ("none", "mean", "attention")
+    for graph in ("accumulated", "per_step")
+]
+
+
+def random_objects(b: int, p: float, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(b, N_TYPES, generator=g) < p).to(torch.uint8)
+
+
+def random_adjacency(seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    a = (torch.rand(N_TYPES, N_TYPES, generator=g) < 0.08).float()
+    a = torch.maximum(a, a.T)
+    a.fill_diagonal_(0)
+    return a
+
+
+def inputs(cfg: ModelConfig, b: int = 6, seed: int = 0) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    if cfg.pixels:
+        shape = (b, cfg.history, 84, 84, 3) if cfg.arch == "ff" else (b, 84, 84, 3)
+        view = torch.randint(0, 256, shape, dtype=torch.uint8, generator=g)
+        target = torch.randint(0, 256, (b, 84, 84, 3), dtype=torch.uint8, generator=g)
+    else:
+        shape = (b, cfg.history, FEATURE_DIM) if cfg.arch == "ff" else (b, FEATURE_DIM)
+        view = torch.rand(shape, generator=g).half()  # the cache's dtype
+        target = torch.rand(b, FEATURE_DIM, generator=g).half()
+    view_objects, target_objects = random_objects(b, 0.04, seed + 1), random_objects(b, 0.04, seed + 2)
+    view_objects[0] = 0  # a sample that sees nothing, with a target that shows nothing either
+    target_objects[0] = 0
+    target_objects[1] = view_objects[1]  # one where both show the same types
+    return dict(
+        view=view,
+        target=target,
+        view_objects=view_objects,
+        target_objects=target_objects,
+        adjacency=random_adjacency(seed) if cfg.kg_graph == "accumulated" else None,
+        scene=torch.arange(b) % cfg.n_scenes,
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# GCN normalisation and masked softmax
+
+
+def test_normalized_adjacency_of_a_hand_made_path_graph():
+    # 0 - 1 - 2: A + I has degrees 2, 3, 2
+    a = torch.tensor([[0.0, 1, 0], [1, 0, 1], [0, 1, 0]])
+    r6 = 6**-0.5
+    expected = torch.tensor([[1 / 2, r6, 0], [r6, 1 / 3, r6], [0, r6, 1 / 2]])
+    assert torch.allclose(normalized_adjacency(a), expected, atol=1e-7)
+    # batched: the same per graph; an empty graph is the identity
+    batch = torch.stack([a, torch.zeros(3, 3)])
+    out = normalized_adjacency(batch)
+    assert torch.allclose(out[0], expected, atol=1e-7)
+    assert torch.equal(out[1], torch.eye(3))
+
+
+def test_masked_softmax_is_zero_outside_the_mask_and_safe_on_an_empty_mask():
+    scores = torch.tensor(
+        [[1.0, 2.0, 3.0, 100.0], [5.0, -1.0, 0.0, 2.0], [1.0, 1.0, 1.0, 1.0]], requires_grad=True
+    )
+    mask = torch.tensor([[1, 1, 1, 0], [0, 0, 0, 0], [0, 1, 0, 0]])
+    w = masked_softmax(scores, mask)
+    assert torch.allclose(w[0, :3], torch.softmax(torch.tensor([1.0, 2.0, 3.0]), 0))
+    assert w[0, 3] == 0
+    assert torch.equal(w[1], torch.zeros(4))
+    assert torch.equal(w[2], torch.tensor([0.0, 1.0, 0.0, 0.0]))
+    (w * torch.arange(4.0)).sum().backward()
+    assert torch.isfinite(scores.grad).all()
+    assert torch.equal(scores.grad[1], torch.zeros(4))
+    assert scores.grad[0, 3] == 0
+
+
+# ------------------------------------------------------------------------------------------------
+# The knowledge-graph branch against a literal implementation of DESIGN.md's equations
+
+
+def literal_kg(kg: models.KnowledgeGraph, r_t, r_g, adjacency, per_step: bool, attention: bool):
+    """Per sample: the graph (accumulated, or the clique over R_z), Â, H(0) = I and 3 GCN layers,
+    H_t = R_t * H, H_g = R_g * H, Q = W'_f [ReLU(W'_s H_t), ReLU(W'_s H_g)], then the mean or the
+    masked attention over R_z."""
+    b, n = r_t.shape
+    r_z = torch.maximum(r_t, r_g)
+    pooled, weights = [], []
+    for i in range(b):
+        if per_step:
+            a = torch.outer(r_z[i], r_z[i])
+            a.fill_diagonal_(0)
+        else:
+            a = adjacency
+        a_hat = normalized_adjacency(a)
+        h = torch.eye(n)
+        for w in (kg.w0, kg.w1, kg.w2):
+            h = F.relu(a_hat @ h @ w)
+        h_t, h_g = r_t[i][:, None] * h, r_g[i][:, None] * h
+        q = kg.spatial_fusion(
+            torch.cat([F.relu(kg.spatial_siamese(h_t)), F.relu(kg.spatial_siamese(h_g))], 1)
+        )
+        if attention:
+            scores = kg.score(F.relu(kg.score_hidden(q))).squeeze(-1)
+            alpha = masked_softmax(scores[None], r_z[i][None])[0]
+        else:
+            alpha = r_z[i] / r_z[i].sum().clamp_min(1)
+        pooled.append(alpha @ q)
+        weights.append(alpha)
+    return torch.stack(pooled), torch.stack(weights)
+
+
+@pytest.mark.parametrize("graph", ["accumulated", "per_step"])
+@pytest.mark.parametrize("kg", ["mean", "attention"])
+def test_closed_form_kg_branch_equals_the_literal_equations(kg, graph):
+    torch.manual_seed(0)
+    cfg = ModelConfig(kg=kg, kg_graph=graph)
+    branch = make_model(cfg).kg
+    # nonzero biases, so that rows outside R_t or R_g (ReLU(W'_s 0 + b) = ReLU(b)) matter
+    with torch.no_grad():
+        for p in branch.parameters():
+            if p.dim() == 1:
+                p.uniform_(-0.5, 0.5)
+    x = inputs(cfg, b=8, seed=3)
+    r_t, r_g = x["view_objects"].float(), x["target_objects"].float()
+    fast, attention, node_features = branch(r_t, r_g, x["adjacency"])
+    slow, alpha = literal_kg(branch, r_t, r_g, x["adjacency"], graph == "per_step", kg == "attention")
+    assert torch.allclose(fast, slow, atol=1e-5, rtol=1e-4)
+    if kg == "attention":
+        assert torch.allclose(attention, alpha, atol=1e-6)
+    else:
+        assert attention is None
+    assert (node_features is None) == (graph == "per_step")
+    assert torch.equal(fast[0], torch.zeros_like(fast[0]))  # nothing in view or target: nothing pooled
+
+
+@pytest.mark.parametrize("graph", ["accumulated", "per_step"])
+def test_attention_weights_are_zero_outside_the_visible_types(graph):
+    cfg = ModelConfig(kg="attention", kg_graph=graph)
+    model = make_model(cfg)
+    x = inputs(cfg, b=8, seed=1)
+    _, _, _, extras = model(**x, state=None)
+    alpha = extras["attention"]
+    r_z = (x["view_objects"] > 0) | (x["target_objects"] > 0)
+    assert alpha.shape == (8, N_TYPES)
+    assert torch.equal(alpha[~r_z], torch.zeros_like(alpha[~r_z]))
+    assert torch.equal(alpha[0], torch.zeros(N_TYPES))  # R_z empty
+    sums = alpha[1:].sum(1)
+    assert torch.allclose(sums, torch.ones_like(sums), atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------
+# Networks
+
+
+@pytest.mark.parametrize("arch,kg,graph", ALL_CONFIGS)
+def test_output_shapes_of_every_network(arch, kg, graph):
+    cfg = ModelConfig(arch=arch, kg=kg, kg_graph=graph)
+    model = make_model(cfg)
+    x = inputs(cfg)
+    logits, value, state, extras = model(**x, state=model.initial_state(6))
+    assert logits.shape == (6, 10) and value.shape == (6,)
+    assert torch.isfinite(logits).all() and torch.isfinite(value).all()
+    if arch == "lstm":
+        assert [t.shape for t in state] == [(6, 256), (6, 256)]
+    else:
+        assert state is None and model.initial_state(6) is None
+    assert (extras["attention"] is None) == (kg != "attention")
+    if kg != "none" and graph == "accumulated":
+        assert extras["node_features"].shape == (N_TYPES, 128)
+    else:
+        assert extras["node_features"] is None
+    (logits.sum() + value.sum()).backward()
+    assert all(p.grad is not None for n, p in model.named_parameters() if not n.startswith("scene_"))
+
+
+@pytest.mark.parametrize("arch", ["lstm", "ff"])
+def test_pixel_models_take_uint8_views(arch):
+    cfg = ModelConfig(arch=arch, kg="attention", pixels=True, history=2)
+    model = make_model(cfg)
+    logits, value, _, extras = model(**inputs(cfg, b=3), state=None)
+    assert logits.shape == (3, 10) and value.shape == (3,) and extras["attention"].shape == (3, N_TYPES)
+
+
+def test_bf16_autocast_forward_and_backward():
+    cfg = ModelConfig(kg="attention")
+    model = make_model(cfg)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        logits, value, state, _ = model(**inputs(cfg), state=None)
+    assert torch.isfinite(logits.float()).all()
+    (logits.float().sum() + value.float().sum()).backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
+def test_lstm_state_none_is_the_zero_state_and_the_state_carries_memory():
+    torch.manual_seed(0)
+    cfg = ModelConfig(kg="mean")
+    model = make_model(cfg)
+    x = inputs(cfg)
+    a = model(**x, state=None)
+    b = model(**x, state=model.initial_state(6))
+    assert torch.equal(a[0], b[0])
+    c = model(**x, state=a[2])  # the second step of the same episodes differs from a fresh start
+    assert not torch.allclose(c[0], a[0])
+
+
+def test_ff_scene_heads_pick_each_samples_scene():
+    torch.manual_seed(0)
+    cfg = ModelConfig(arch="ff", kg="attention", n_scenes=3)
+    model = make_model(cfg)
+    x = inputs(cfg, b=7)
+    x["scene"] = torch.tensor([2, 0, 1, 2, 0, 0, 1])
+    logits, value, _, _ = model(**x, state=None)
+    for i in range(7):  # each sample alone gives the same answer as inside the mixed batch
+        one = {k: (v[i : i + 1] if k not in ("adjacency",) and v is not None else v) for k, v in x.items()}
+        li, vi, _, _ = model(**one, state=None)
+        assert torch.allclose(li, logits[i : i + 1], atol=1e-6) and torch.allclose(
+            vi, value[i : i + 1], atol=1e-6
+        )
+    other = dict(x, scene=(x["scene"] + 1) % 3)
+    assert not torch.allclose(model(**other, state=None)[0], logits)
+    with pytest.raises(ModelError, match="scene"):
+        model(**dict(x, scene=torch.full((7,), 3)), state=None)
+    with pytest.raises(ModelError, match="scene"):
+        model(**dict(x, scene=None), state=None)
+
+
+def test_make_model_names_the_bad_field():
+    for field, value in [
+        ("arch", "gru"),
+        ("kg", "graph"),
+        ("kg_graph", "daily"),
+        ("lstm", 0),
+        ("history", "4"),
+    ]:
+        with pytest.raises(ValueError, match=f"ModelConfig.{field}"):
+            make_model(ModelConfig(**{field: value}))
+    with pytest.raises(ModelError, match="adjacency"):
+        cfg = ModelConfig(kg="mean")
+        make_model(cfg)(**dict(inputs(cfg), adjacency=None), state=None)
+
+
+def test_covisibility_counts_pairs_seen_together():
+    covis = CoVisibility()
+    frames = np.zeros((3, N_TYPES), np.uint8)
+    frames[0, [1, 2, 3]] = 1
+    frames[1, [1, 2]] = 1
+    frames[2, [7]] = 1  # alone: no edge, no self loop
+    covis.add(frames)
+    assert covis.counts[1, 2] == 2 and covis.counts[2, 1] == 2 and covis.counts[1, 3] == 1
+    assert covis.counts.diagonal().sum() == 0 and covis.counts.sum() == 2 * (2 + 1 + 1)
+    a = covis.adjacency()
+    assert a.dtype == torch.float32 and torch.equal(a, a.T) and a.sum() == 6 and a[7].sum() == 0
+    covis.add(torch.from_numpy(frames[:1]))
+    other = CoVisibility()
+    other.load_state_dict(covis.state_dict())
+    assert torch.equal(other.counts, covis.counts) and other.counts[1, 2] == 3
+    with pytest.raises(ModelError, match="co-visibility"):
+        other.load_state_dict({"counts": torch.zeros(3, 3)})
+
+
+# ------------------------------------------------------------------------------------------------
+# The encoder and the per-state features
+
+
+@pytest.fixture(scope="module")
+def floorplan5():
+    """A validation kitchen (never seen in pretraining), built into the hermetic cache (~8 s)."""
+    return state_graph("FloorPlan5")
+
+
+def test_committed_encoder_beats_a_random_one_on_a_validation_kitchen(floorplan5):
+    g = floorplan5
+    keep = np.linspace(0, g.n_states - 1, 512).round().astype(np.int64)
+    data = ViewSet(
+        np.asarray(g.views)[keep],
+        np.asarray(g.object_vectors)[keep],
+        np.searchsorted((-30, 0, 30, 60), g.pitch[keep]),
+        (g.opened[keep] >= 0).astype(np.float32),
+    )
+    meta = models.read_encoder_file()["meta"]
+    assert "FloorPlan5" not in meta["kitchens"] and "FloorPlan5" in meta["val_kitchens"]
+    trained = evaluate_encoder(load_encoder(), data)
+    torch.manual_seed(0)
+    random = evaluate_encoder(Encoder(), data)
+    assert trained["mAP"] > random["mAP"] + 0.2, (trained, random)
+    assert trained["micro_f1"] > random["micro_f1"] + 0.2, (trained, random)
+
+
+def test_encoder_file_errors_name_the_file(tmp_path):
+    with pytest.raises(ModelError, match="missing.pt.*missing"):
+        load_encoder(tmp_path / "missing.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a torch file")
+    with pytest.raises(ModelError, match="bad.pt.*corrupt"):
+        load_encoder(bad)
+
+
+def test_saved_encoder_round_trips_in_fp16(tmp_path):
+    torch.manual_seed(1)
+    encoder = Encoder()
+    path = tmp_path / "enc.pt"
+    models.save_encoder(encoder, path, {"seed": 1})
+    loaded = load_encoder(path)
+    for (k, a), b in zip(encoder.state_dict().items(), loaded.state_dict().values()):
+        assert torch.equal(a.half().float(), b), k
+    assert models.read_encoder_file(path)["meta"] == {"seed": 1}
+    assert len(models.encoder_hash(path)) == 12
+
+
+def test_pretraining_is_deterministic(floorplan5, floorplan1_tasks):
+    args = dict(
+        kitchens=["FloorPlan5"], val_kitchens=["FloorPlan5"], epochs=1, samples_per_epoch=64, batch_size=32
+    )
+    with pytest.raises(ModelError, match="overlap"):
+        models.pretrain_encoder(out=None, log=lambda *_: None, **args)
+    args.update(val_kitchens=["FloorPlan1"], max_val_views=64)
+    a, meta_a = models.pretrain_encoder(out=None, seed=3, log=lambda *_: None, **args)
+    b, meta_b = models.pretrain_encoder(out=None, seed=3, log=lambda *_: None, **args)
+    assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
+    assert meta_a == meta_b and meta_a["images"] == 64 and meta_a["val"]["views"] == 64
+
+
+def test_state_features_are_cached_reused_and_rebuilt(floorplan5, monkeypatch, capsys):
+    features = state_features("FloorPlan5")
+    assert features.shape == (floorplan5.n_states, FEATURE_DIM) and features.dtype == np.float16
+    assert np.isfinite(features).all() and (features >= 0).all()
+    path = models.features_path("FloorPlan5")
+    assert path.exists() and path.name.endswith(f".features-{models.encoder_hash()}.npy")
+    # the same numbers as encoding the views now
+    some = np.asarray(floorplan5.views[:16])
+    with torch.no_grad():
+        direct = load_encoder()(torch.from_numpy(some)).half().numpy()
+    assert np.allclose(features[:16].astype(np.float32), direct.astype(np.float32), atol=1e-2, rtol=1e-2)
+
+    # the second call reads the file: no encoder is needed
+    def no_encoder():
+        raise AssertionError("the encoder ran again")
+
+    monkeypatch.setattr(models, "_cached_encoder", no_encoder)
+    again = state_features("FloorPlan5")
+    assert isinstance(again, np.memmap) and np.array_equal(again, features)
+    monkeypatch.undo()
+    # (the cache is only ever replaced by a rename; the test overwrites it in place, so it lets go of the
+    # memory maps first: reading a truncated mapping is a bus error)
+    features = np.array(features)
+    del again
+
+    # a corrupt file is rebuilt, with a notice on stderr
+    mtime = path.stat().st_mtime_ns
+    path.write_bytes(b"garbage")
+    rebuilt = state_features("FloorPlan5")
+    assert np.array_equal(rebuilt, features)
+    assert "unreadable" in capsys.readouterr().err
+    # a file of the wrong shape too
+    np.save(path, np.zeros((3, FEATURE_DIM), np.float16))
+    assert state_features("FloorPlan5").shape == (floorplan5.n_states, FEATURE_DIM)
+    assert path.stat().st_mtime_ns != mtime
+
+
+def test_committed_encoder_file_exists():
+    assert ENCODER_FILE.exists() and os.path.getsize(ENCODER_FILE) < 8_000_000
+    meta = models.read_encoder_file()["meta"]
+    for key in ("seed", "epochs", "kitchens", "val"):
+        assert key in meta
+    assert len(meta["kitchens"]) == 20 and meta["val"]["mAP"] > meta["val_random_init"]["mAP"]

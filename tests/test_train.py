@@ -1,0 +1,370 @@
+"""The trainer: the vectorised navigators against the env, the losses on hand-computed numbers, LSTM
+resets, TSE relabelling, IL, checkpoints and resumption, errors, and a tiny train + eval of every learned
+plugin."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from kgnavbench import models, train
+from kgnavbench.cli import main
+from kgnavbench.env import parallel_env
+from kgnavbench.tasks import STOP
+
+ROOT = Path(__file__).resolve().parent.parent
+# what makes a training run take seconds: few agents, short rollouts, small networks, one validation
+# kitchen with one episode per target
+TINY = {
+    "agents_per_kitchen": "4",
+    "n_steps": "5",
+    "hidden": "32",
+    "lstm": "32",
+    "log_every": "200",
+    "val_every": "400",
+    "val_kitchens": "1",
+    "val_episodes": "1",
+    "il_batch": "4",
+    "tse_batch": "4",
+    "threads": "1",
+}
+
+
+def tiny_options(**changes) -> train.TrainOptions:
+    values = {k: type(getattr(train.TrainOptions, k))(v) for k, v in TINY.items()}
+    return train.TrainOptions(**{**values, **changes})
+
+
+def tiny_run(tmp_path: Path, frames: int = 400, seed: int = 0) -> train.Run:
+    return train.Run(tmp_path, "test", frames, seed, ("FloorPlan1",), progress=lambda line: None)
+
+
+@pytest.fixture(scope="module")
+def space(floorplan1_tasks):
+    return train.build_space(["FloorPlan1"], "all", "destination")
+
+
+# ----------------------------------------------------------------------------------------------------
+# the navigators step exactly as the env
+
+
+@pytest.mark.parametrize("rule", ["destination", "visible"])
+def test_navigators_give_the_envs_episodes(floorplan1_tasks, rule):
+    """The same fixed episodes and the same random actions through the PettingZoo env and through
+    Navigators (array gathers): identical states, rewards, terminations and episode statistics."""
+    tasks = floorplan1_tasks
+    space = train.build_space(["FloorPlan1"], "all", rule)
+    rows = {t: r for r, t in enumerate(space.target_ids)}
+    episodes = [
+        {"target": t.object_id, "start": s, "max_steps": 60} for t in tasks.targets[:6] for s in t.starts[:3]
+    ]
+    env = parallel_env(kitchen="FloorPlan1", n_agents=len(episodes), targets="all", success_rule=rule)
+    _, infos = env.reset(options={"episodes": episodes})
+    agents = list(env.agents)
+    nav = train.Navigators(space, np.zeros(len(episodes), np.int64))
+    nav.begin(
+        np.arange(len(episodes)),
+        np.array([rows[e["target"]] for e in episodes]),
+        np.array([e["start"] for e in episodes]),
+        60,
+    )
+    rng = np.random.default_rng(0)
+    live = np.ones(len(episodes), bool)
+    steps = 0
+    while env.agents:
+        # Stop rarely, so that episodes run long and some end at the cap
+        actions = np.where(rng.random(len(episodes)) < 0.03, STOP, rng.integers(0, STOP, len(episodes)))
+        idx = np.flatnonzero(live)
+        _, rewards, terminations, truncations, infos = env.step({agents[i]: int(actions[i]) for i in idx})
+        r, term, trunc = nav.step(actions[idx], idx)
+        for j, i in enumerate(idx):
+            a, info = agents[i], infos[agents[i]]
+            assert rewards[a] == pytest.approx(r[j])
+            assert (terminations[a], truncations[a]) == (bool(term[j]), bool(trunc[j]))
+            assert info["state"] == nav.state[i] - space.offsets[0]
+            assert info["success"] == nav.success[i]
+            assert info["path_length"] == nav.path[i]
+            assert info["collisions"] == nav.collisions[i]
+            assert info["episode_length"] == nav.steps[i]
+        live[idx[term | trunc]] = False
+        steps += len(idx)
+    assert not live.any() and steps > 200
+    assert nav.collisions.sum() > 0
+
+
+def test_training_starts_are_the_envs(space, floorplan1_tasks):
+    """Navigators.draw starts where the env would: pitch 0, target out of view, >= 10 actions away."""
+    nav = train.Navigators(space, np.zeros(500, np.int64))
+    nav.draw(np.arange(500), np.random.default_rng(1), 5000)
+    graph = floorplan1_tasks.graph
+    assert (graph.pitch[nav.state] == 0).all()
+    assert not space.visible[nav.target, nav.state].any()
+    assert (space.dist[nav.target, nav.state] >= 10).all()
+    assert len(set(nav.target.tolist())) > 5
+
+
+# ----------------------------------------------------------------------------------------------------
+# the losses
+
+
+def test_n_step_returns_by_hand():
+    rewards = torch.tensor([[1.0, -0.01], [2.0, 10.0], [3.0, -0.01]])  # (T=3, B=2)
+    dones = torch.tensor([[0.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
+    bootstrap = torch.tensor([4.0, 5.0])
+    g = 0.5
+    returns = train.n_step_returns(rewards, dones, bootstrap, g)
+    # agent 0: 3 + .5*4 = 5; 2 + .5*5 = 4.5; 1 + .5*4.5 = 3.25
+    # agent 1: the episode ends at t=1: R_1 = 10, R_0 = -0.01 + .5*10 = 4.99; t=2 starts anew: -0.01 + .5*5
+    assert returns[:, 0].tolist() == pytest.approx([3.25, 4.5, 5.0])
+    assert returns[:, 1].tolist() == pytest.approx([4.99, 10.0, 2.49])
+
+
+def test_actor_critic_loss_by_hand():
+    log_prob = torch.log(torch.tensor([0.5, 0.25]))
+    value = torch.tensor([1.0, 2.0], requires_grad=True)
+    entropy = torch.tensor([1.0, 2.0])
+    returns = torch.tensor([3.0, 1.0])
+    loss, parts = train.actor_critic_loss(log_prob, value, entropy, returns, 0.5, 0.01)
+    # advantages 2 and -1; policy -(ln .5 * 2 + ln .25 * -1) / 2; value .5 (4 + 1) / 2; entropy 1.5
+    policy = -(np.log(0.5) * 2 + np.log(0.25) * -1) / 2
+    assert parts["policy"] == pytest.approx(policy, rel=1e-6)
+    assert parts["value"] == pytest.approx(1.25)
+    assert parts["entropy"] == pytest.approx(1.5)
+    assert float(loss) == pytest.approx(policy + 0.5 * 1.25 - 0.01 * 1.5, rel=1e-6)
+    # masked: only the first sample counts
+    _, parts = train.actor_critic_loss(
+        log_prob, value, entropy, returns, 0.5, 0.01, mask=torch.tensor([1.0, 0.0])
+    )
+    assert parts["value"] == pytest.approx(2.0)
+
+
+def test_relabel_a_hand_made_trajectory():
+    # a walk 7 -> 8 -> 3 -> 8 -> 5 (goal 5), actions 0, 1, 2, 3
+    states, actions, rewards, mu = train.relabel([7, 8, 3, 8, 5], [0, 1, 2, 3], [0.5, 0.4, 0.3, 0.2], 5)
+    assert states == [7, 8, 3, 8, 5]
+    assert actions == [0, 1, 2, 3, STOP]  # the added Stop at the sub-target
+    # -0.01 a step; the first arrival at 5 (after action 3) +0.01; the Stop at 5 succeeds, +10
+    assert rewards.tolist() == pytest.approx([-0.01, -0.01, -0.01, 0.0, 9.99])
+    assert mu[:4].tolist() == [0.5, 0.4, 0.3, 0.2] and np.isnan(mu[4])
+    with pytest.raises(ValueError):
+        train.relabel([7, 8], [0], [0.5], 5)  # does not end at the goal
+
+
+def test_novel_subtargets_fire_once_per_new_type_up_to_the_limit():
+    seen = np.array([[1, 0, 0, 0], [0, 0, 0, 0]], bool)
+    count = np.zeros(2, np.int64)
+    eligible = np.array([[1, 1, 0, 1], [1, 1, 1, 1]], bool)
+    fire = train.novel_subtargets(seen, np.array([[1, 0, 1, 0], [0, 1, 0, 0]]), eligible, count, 2)
+    assert fire.tolist() == [False, True]  # agent 0: type 0 was seen, type 2 is not eligible
+    fire = train.novel_subtargets(seen, np.array([[0, 1, 0, 0], [0, 1, 0, 0]]), eligible, count, 2)
+    assert fire.tolist() == [True, False]  # agent 1 has seen type 1 already
+    fire = train.novel_subtargets(seen, np.array([[0, 0, 0, 1], [1, 0, 0, 0]]), eligible, count, 1)
+    assert fire.tolist() == [False, False]  # both at the limit of 1
+    assert count.tolist() == [1, 1]
+
+
+def test_tse_subtrajectories_end_at_their_subtarget_with_a_successful_stop(tmp_path, floorplan1_tasks):
+    trainer = train.Trainer(tiny_run(tmp_path), tiny_options(tse=True), models.ModelConfig(), True)
+    for _ in range(8):
+        trainer.rollout(None)
+        if trainer.candidates:
+            break
+    assert trainer.candidates, "no sub-target in 8 rollouts of 4 agents"
+    seq = trainer.subtrajectories()
+    sp = trainer.space
+    for i in range(len(seq.goal)):
+        n = int(seq.mask[i].sum())
+        states, actions = seq.states[i, :n], seq.actions[i, :n]
+        assert actions[-1] == STOP and states[-1] == seq.goal[i]
+        # the states follow from the actions through the state graph
+        for t in range(n - 1):
+            assert sp.next_state[states[t], actions[t]] == states[t + 1]
+        assert seq.rewards[i, n - 1] == pytest.approx(
+            9.99 if (states[:-1] != seq.goal[i]).all() else 10 - 0.01
+        )
+
+
+# ----------------------------------------------------------------------------------------------------
+# the trainer
+
+
+def test_lstm_state_is_reset_at_episode_boundaries(tmp_path, floorplan1_tasks):
+    """An agent whose episode ends at step t enters step t + 1 with a zero LSTM state; the others keep
+    theirs."""
+    trainer = train.Trainer(tiny_run(tmp_path), tiny_options(), models.ModelConfig(lstm=32, hidden=32), True)
+    trainer.rollout(None)  # the LSTM states are nonzero now
+    seen_states = []
+    net = trainer.model.net
+    original = net.forward
+
+    def spy(*args, **kwargs):
+        seen_states.append(tuple(h.detach().clone() for h in args[4]))
+        return original(*args, **kwargs)
+
+    net.forward = spy
+    trainer.nav.cap[0] = trainer.nav.steps[0] + 2  # agent 0's episode is truncated at the second step
+    trainer.rollout(None)
+    h_before, h_after = seen_states[1][0], seen_states[2][0]
+    assert h_before[0].abs().sum() > 0 and h_after[0].abs().sum() == 0
+    assert (h_after[1:].abs().sum(1) > 0).all()
+
+
+def test_imitation_loss_falls_on_a_fixed_batch(tmp_path, floorplan1_tasks):
+    trainer = train.Trainer(
+        tiny_run(tmp_path), tiny_options(lr=3e-3), models.ModelConfig(lstm=32, hidden=32), False
+    )
+    torch.manual_seed(0)
+    losses = []
+    for _ in range(40):
+        loss, _ = trainer.imitation(None)
+        trainer.optimizer.zero_grad()
+        loss.backward()
+        trainer.optimizer.step()
+        losses.append(float(loss))
+    assert losses[-1] < 0.5 * losses[0]
+
+
+def test_expert_sequences_reach_every_destination(space):
+    for expert in train.EXPERTS:
+        seq = train.expert_sequences(space, expert, 20, np.random.default_rng(0))
+        for i in range(len(seq.goal)):
+            n = int(seq.mask[i].sum())
+            assert seq.actions[i, n - 1] == STOP
+            assert seq.states[i, n - 1] == space.destination[i]
+
+
+# ----------------------------------------------------------------------------------------------------
+# runs: checkpoints, resumption, errors
+
+
+def _train(tmp_path: Path, method: str = "lstm_a3c", frames: int = 400, extra=()) -> list[str]:
+    sets = [f"--set={k}={v}" for k, v in TINY.items()] + [f"--set={s}" for s in extra]
+    cmd = [sys.executable, "-m", "kgnavbench", "train", "--method", method, "--frames", str(frames)]
+    cmd += ["--kitchens", "FloorPlan1", "--runs", str(tmp_path / "runs"), *sets]
+    return cmd
+
+
+def test_killed_training_resumes_to_the_same_weights(tmp_path, hermetic_cache):
+    """kill -9 after the first checkpoint, run the same command again: it resumes from last.pt at the
+    saved frame count, and ends with exactly the weights, optimiser state and counts of an unbroken run."""
+    env = {**os.environ, "KGNAVBENCH_CACHE": str(hermetic_cache)}
+    whole = subprocess.run(_train(tmp_path / "a", frames=800), capture_output=True, text=True, env=env)
+    assert whole.returncode == 0, whole.stderr
+    run_a = Path(whole.stdout.strip().splitlines()[-1])
+
+    cmd = _train(tmp_path / "b", frames=800)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    run_b = tmp_path / "b" / "runs" / "train" / run_a.name
+    deadline = time.time() + 120
+    while not (run_b / "last.pt").exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    saved = train.load_checkpoint(run_b / "last.pt")["frames"]
+    assert 0 < saved < 800 and not (run_b / "finished.json").exists()
+    again = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    assert again.returncode == 0, again.stderr
+    assert f"at {saved:,} frames" in again.stdout
+    a, b = train.load_checkpoint(run_a / "last.pt"), train.load_checkpoint(run_b / "last.pt")
+    assert a["frames"] == b["frames"] == 800 and a["updates"] == b["updates"]
+    for key in a["model"]:
+        assert torch.equal(a["model"][key], b["model"][key]), key
+    for sa, sb in zip(a["optimizer"]["state"].values(), b["optimizer"]["state"].values()):
+        assert torch.equal(sa["exp_avg"], sb["exp_avg"])
+    rows_a = (run_a / "metrics.csv").read_text().splitlines()
+    rows_b = (run_b / "metrics.csv").read_text().splitlines()
+    assert [r.split(",")[0] for r in rows_a] == [r.split(",")[0] for r in rows_b]  # no row lost or doubled
+    # and a finished run is found, not retrained
+    third = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    assert "finished run" in third.stdout and third.stdout.strip().splitlines()[-1] == str(run_b)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["train", "--method", "nope"], "unknown method 'nope'"),
+        (["train", "--method", "random_walk"], "does not train"),
+        (["train", "--method", "lstm_a3c", "--set", "lr=-1"], "lr > 0"),
+        (["train", "--method", "lstm_a3c", "--set", "n_steps=x"], "n_steps='x' is not a int"),
+        (["train", "--method", "lstm_a3c", "--set", "bogus=1"], "unknown option 'bogus'"),
+        (["train", "--method", "kg_attention", "--set", "kg_graph=tree"], "kg_graph='tree'"),
+        (
+            ["train", "--method", "lstm_a3c", "--frames", "1", "--kitchens", "FloorPlan13"],
+            "not a training kitchen",
+        ),
+        (["train", "--method", "lstm_a3c", "--frames", "0"], "--frames"),
+        (["eval", "--method", "lstm_a3c", "--kitchens", "FloorPlan1"], "is a learned method"),
+    ],
+)
+def test_train_errors_are_one_line(capsys, tmp_path, argv, message):
+    code = main([*argv, "--runs", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert code == 2, out
+    assert err.count("\n") == 1 and message in err and "Traceback" not in err
+    assert not (tmp_path / "train").exists()  # nothing written
+
+
+def test_corrupt_checkpoint_and_foreign_run_are_refused(capsys, tmp_path, floorplan1_tasks):
+    argv = _train(tmp_path)[3:]
+    assert main(argv) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    (run_dir / "finished.json").unlink()
+    (run_dir / "last.pt").write_bytes(b"not a checkpoint")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "last.pt is corrupt" in err and err.count("\n") == 1
+    assert (run_dir / "last.pt").read_bytes() == b"not a checkpoint"  # left for the user, not overwritten
+    # a run directory holding another config is never overwritten
+    config = json.loads((run_dir / "config.json").read_text())
+    config["seed"] = 99
+    (run_dir / "config.json").write_text(json.dumps(config))
+    assert main(argv) == 2
+    assert "another config (differs in seed)" in capsys.readouterr().err
+    assert (
+        main(["eval", "--method", "lstm_a3c", "--run", str(run_dir / "nope"), "--runs", str(tmp_path)]) == 2
+    )
+    assert "not a training run" in capsys.readouterr().err
+    assert main(["eval", "--method", "kg_attention", "--run", str(run_dir), "--runs", str(tmp_path)]) == 2
+    assert "trained 'lstm_a3c', not 'kg_attention'" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------------------
+# every learned plugin: a tiny train, then eval of its best checkpoint
+
+
+@pytest.mark.parametrize(
+    "method, extra",
+    [
+        ("imitation", ()),
+        ("ff_a3c", ()),
+        ("lstm_a3c", ("il=true", "tse=true", "tse_importance=true")),
+        ("kg_attention", ()),
+        ("kg_attention", ("attention=false", "kg_graph=per_step")),
+    ],
+)
+def test_train_then_eval_every_learned_plugin(capsys, tmp_path, floorplan1_tasks, method, extra):
+    assert main(_train(tmp_path, method, 400, extra)[3:]) == 0
+    out = capsys.readouterr().out
+    run_dir = Path(out.strip().splitlines()[-1])
+    assert (run_dir / "best.pt").exists() and (run_dir / "finished.json").exists()
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["method"] == method and config["git_revision"]
+    header = (run_dir / "metrics.csv").read_text().splitlines()[0]
+    assert header.split(",") == list(train.METRICS)
+    code = main(
+        ["eval", "--method", method, "--run", str(run_dir), "--kitchens", "FloorPlan1", "--episodes", "1"]
+        + ["--runs", str(tmp_path), "--json"]
+    )
+    out = capsys.readouterr().out
+    assert code == 0
+    summary = json.loads(out)["summary"]
+    assert summary["seen_seen/static"]["episodes"] > 0
