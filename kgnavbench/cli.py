@@ -8,10 +8,12 @@
     kgnavbench methods
     kgnavbench eval --method NAME [--success-rule visible|destination] [--stop-noop]
                     [--split table|train|val|test] [--kitchens A,B] [--episodes N] [--set KEY=VALUE]
-                    [--seed S] [--runs DIR] [--run TRAIN_RUN] [--json]
+                    [--seed S] [--runs DIR] [--run TRAIN_RUN] [--json] [--record FILE.rrd]
+                    [--record-episodes N]
     kgnavbench train --method NAME [--set KEY=VALUE] [--frames N] [--seed S] [--kitchens A,B]
-                     [--runs DIR]
+                     [--runs DIR] [--record FILE.rrd]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR]
+    kgnavbench view FILE.rrd
 
 Bad input (an unknown kitchen or action, an unreachable start, a malformed pose, an out-of-range size,
 an unusable output folder) prints one line ``kgnavbench: error: ...`` to stderr and exits with status 2.
@@ -318,7 +320,27 @@ def cmd_eval(args: argparse.Namespace) -> int:
         run=str(args.run) if args.run else "",
     )
     progress = (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else print
+    if args.record is not None and not str(args.record).endswith(".rrd"):
+        raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
     run = evaluate(config, args.runs, progress=progress)
+    if args.record is not None:
+        from .record import RecordError, record_episodes  # rerun loads only when recording
+
+        try:
+            done = record_episodes(
+                args.method,
+                options,
+                args.record,
+                kitchens=list(config.kitchens) or None,
+                episodes=args.record_episodes,
+                success_rule=config.success_rule,
+                seed=config.seed,
+                stop_ends=config.stop_ends,
+                run=config.run or None,
+            )
+        except RecordError as e:
+            raise UsageError(str(e)) from e
+        progress(f"recorded {done['episodes']} episodes ({done['steps']} steps) to {args.record}")
     if args.json:
         summary = {f"{c}/{k}": vars(m) for (c, k), m in run.summary.items()}
         print(json.dumps({"run": str(run.directory), "summary": summary}, indent=1))
@@ -352,8 +374,25 @@ def cmd_train(args: argparse.Namespace) -> int:
         )
     except (TrainError, ModelError) as e:
         raise UsageError(str(e)) from e
+    if args.record is not None:
+        from .record import RecordError, record_training
+
+        try:
+            done = record_training(directory / "metrics.csv", args.record)
+        except RecordError as e:
+            raise UsageError(str(e)) from e
+        print(f"recorded {done['rows']} rows of training curves to {args.record}")
     print(directory)  # the last line: the run directory, for `kgnavbench eval --run`
     return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from .record import RecordError, view
+
+    try:
+        return view(args.file)
+    except RecordError as e:
+        raise UsageError(str(e)) from e
 
 
 def cmd_table(args: argparse.Namespace) -> int:
@@ -523,6 +562,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="a learned method's training run (its best-validation checkpoint)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--record", type=Path, metavar="FILE.rrd", help="also record episodes with rerun")
+    p.add_argument(
+        "--record-episodes", type=_positive, default=2, metavar="N", help="episodes to record (default 2)"
+    )
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser(
@@ -541,7 +584,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")
     p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    p.add_argument("--record", type=Path, metavar="FILE.rrd", help="record the training curves with rerun")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser(
+        "view",
+        help="open a recording (.rrd) in the rerun viewer",
+        description="Open FILE.rrd in the rerun viewer; without a display, say how to watch it.",
+    )
+    p.add_argument("file", type=Path, metavar="FILE.rrd")
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser(
         "table",

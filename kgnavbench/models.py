@@ -114,11 +114,12 @@ class Encoder(nn.Module):
         return self.type_head(features), self.pitch_head(features), self.open_head(features).squeeze(-1)
 
 
-def save_encoder(encoder: Encoder, path: Path, meta: dict) -> None:
-    """fp16 weights and the training record, written atomically."""
+def save_encoder(encoder: Encoder, path: Path, meta: dict, stats: dict | None = None) -> None:
+    """fp16 weights, the feature statistics (`feature_statistics`) and the training record, atomically."""
     payload = {
         "format": ENCODER_FORMAT,
         "state_dict": {k: v.detach().to(torch.float16).contiguous() for k, v in encoder.state_dict().items()},
+        "feature_stats": stats or {},
         "meta": meta,
     }
     buffer = io.BytesIO()
@@ -155,6 +156,45 @@ def load_encoder(path: Path | str = ENCODER_FILE) -> Encoder:
     except RuntimeError as e:
         raise ModelError(f"encoder weights {path} do not fit the Encoder ({e}); run `make encoder`") from e
     return encoder.eval()
+
+
+@torch.no_grad()
+def feature_statistics(encoder: Encoder, views: np.ndarray, batch: int = 512) -> dict:
+    """Per-dimension mean and spread of the encoder's features over `views` (the training kitchens'):
+    the networks see standardized features. Raw ReLU features share a large common part, and an LSTM
+    fed them sits for hundreds of updates at the marginal action distribution (measured here)."""
+    total = torch.zeros(encoder.project.out_features, dtype=torch.float64)
+    square = torch.zeros_like(total)
+    for i in range(0, len(views), batch):
+        f = encoder(torch.from_numpy(np.array(views[i : i + batch]))).double()
+        total += f.sum(0)
+        square += (f * f).sum(0)
+    mean = total / max(1, len(views))
+    std = (square / max(1, len(views)) - mean * mean).clamp_min(0).sqrt()
+    return {"mean": mean.float(), "std": std.float()}
+
+
+def standardize(features, stats: dict) -> Tensor:
+    """(..., 512) features -> float32 (f - mean) / max(std, 0.1): dimensions that barely vary in the
+    training kitchens are not blown up where they do."""
+    f = torch.as_tensor(np.asarray(features, np.float32) if not isinstance(features, Tensor) else features)
+    return (f.float() - stats["mean"]) / stats["std"].clamp_min(0.1)
+
+
+_stats_cache: dict[str, dict] = {}
+
+
+def encoder_feature_stats(path: Path | str = ENCODER_FILE) -> dict:
+    """The committed encoder's feature statistics {"mean", "std"} (512,) float32."""
+    key = encoder_hash(path)
+    if key not in _stats_cache:
+        stats = read_encoder_file(path).get("feature_stats") or {}
+        if not all(
+            isinstance(stats.get(k), Tensor) and stats[k].shape == (FEATURE_DIM,) for k in ("mean", "std")
+        ):
+            raise ModelError(f"encoder weights {path} have no feature statistics; run `make encoder`")
+        _stats_cache[key] = {k: stats[k].float() for k in ("mean", "std")}
+    return _stats_cache[key]
 
 
 _hash_cache: dict[tuple, str] = {}
@@ -353,6 +393,7 @@ def pretrain_encoder(
     seconds = time.perf_counter() - train_start
     encoder.eval()
     final = evaluate_encoder(encoder, val)
+    stats = feature_statistics(encoder, train.views)
     # The record is deterministic (no timings): the same seed and data give the same file and hash.
     meta = {
         "seed": seed,
@@ -377,7 +418,7 @@ def pretrain_encoder(
         f"{final['pitch_accuracy']:.4f}"
     )
     if out is not None:
-        save_encoder(encoder, Path(out), meta)
+        save_encoder(encoder, Path(out), meta, stats)
         log(f"pretrain: wrote {out} (hash {encoder_hash(out)})")
     return encoder, meta
 

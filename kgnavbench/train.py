@@ -57,6 +57,7 @@ from .tasks import (
     START_PITCH,
     STOP,
     KitchenTasks,
+    expert_actions,
     load_task_file,
     load_tasks,
     shortest_trajectory,
@@ -65,7 +66,7 @@ from .tasks import (
 
 CHECKPOINT_FORMAT = 1
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
-EXPERTS = ("walk_back", "shortest")
+EXPERTS = ("walk_back", "shortest", "on_policy")
 KG_GRAPHS = ("accumulated", "per_step")
 METRICS = (
     "frames",
@@ -98,6 +99,10 @@ class TrainOptions:
     """Options every learned method shares (`--set key=value`). A plugin's Config extends this."""
 
     success_rule: str = "destination"  # the paper's: Stop at the destination; "visible": SAVN's
+    # Training episodes: a wrong Stop ends the episode (true, as in evaluation) or is a no-op (false).
+    # With Stop ending them, stopping at once (-0.01) beats any walk that does not reach the
+    # destination, and a policy that has never succeeded learns just that.
+    stop_ends: bool = False
     agents_per_kitchen: int = 64  # agents per training kitchen, all stepped at once
     n_steps: int = 20  # rollout length: n-step returns
     lr: float = 7e-4  # Adam
@@ -110,7 +115,9 @@ class TrainOptions:
     lstm: int = 256
     # imitation learning: cross-entropy on one expert trajectory per training target
     il: bool = False
-    il_expert: str = "walk_back"  # the paper's walk-back expert, or "shortest" (BFS-optimal)
+    # the paper's walk-back expert; "shortest": a BFS-optimal path from a training start; "on_policy":
+    # the BFS-optimal action on every state the agents visit (DAgger's labels, no separate pass)
+    il_expert: str = "walk_back"
     il_walk: int = 20  # walk-back steps from the destination
     il_frames: int = 2_000_000  # IL is mixed into the loss until this many frames ("online")
     il_batch: int = 32  # expert trajectories per update
@@ -287,7 +294,8 @@ class StateSpace:
         return len(self.next_state)
 
     def __post_init__(self) -> None:
-        self.features_t = torch.from_numpy(self.features.astype(np.float32))
+        # standardized with the encoder's statistics of the training kitchens (models.standardize)
+        self.features_t = models.standardize(self.features, models.encoder_feature_stats())
         self.objects_t = torch.from_numpy(self.objects.astype(np.float32))
 
 
@@ -483,7 +491,7 @@ def actor_critic_loss(
     value_loss = 0.5 * (((returns - value) ** 2) * mask).sum() / n
     bonus = (entropy * mask).sum() / n
     loss = policy + value_weight * value_loss - entropy_weight * bonus
-    return loss, {"policy": float(policy), "value": float(value_loss), "entropy": float(bonus)}
+    return loss, {"policy": policy.item(), "value": value_loss.item(), "entropy": bonus.item()}
 
 
 def imitation_loss(logits: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -644,7 +652,9 @@ class Trainer:
         self.val_space: StateSpace | None = None
         n_agents = options.agents_per_kitchen * len(self.kitchens)
         self.nav = Navigators(
-            self.space, np.repeat(np.arange(len(self.kitchens)), options.agents_per_kitchen)
+            self.space,
+            np.repeat(np.arange(len(self.kitchens)), options.agents_per_kitchen),
+            stop_ends=options.stop_ends,
         )
         self.cap = TRAINING_MAX_STEPS
         self.nav.draw(np.arange(n_agents), self.rng, self.cap)
@@ -660,11 +670,19 @@ class Trainer:
         self.ring_action = np.zeros((n_agents, self.ring), np.int64)
         self.ring_prob = np.zeros((n_agents, self.ring), np.float64)
         self.candidates: list[tuple[int, int, int, int]] = []  # (agent, tick, episode tick, sub-target)
+        self.il = options.il or not rl
+        self.on_policy = self.il and options.il_expert == "on_policy"
         self.experts = (
             expert_sequences(
                 self.space, options.il_expert, options.il_walk, np.random.default_rng([run.seed, 1])
             )
-            if options.il or not rl
+            if self.il and not self.on_policy
+            else None
+        )
+        # on-policy IL: the BFS-optimal action of every (target, state), -1 where there is none
+        self.expert_table = (
+            np.stack([expert_actions(self.space.next_state, d) for d in self.space.dist]).astype(np.int8)
+            if self.on_policy
             else None
         )
 
@@ -681,15 +699,21 @@ class Trainer:
         """One rollout of every agent (or, IL only, one expert batch) and one gradient step."""
         adjacency = self.model.adjacency()
         loss = torch.zeros(())
-        if self.rl:
-            rl_loss = self.rollout(adjacency)
-            loss = loss + rl_loss
-            self.stats["rl"] += float(rl_loss)
-            self.stats["losses_rl"] += 1
-        if self.experts is not None and (not self.rl or self.frames < self.opts.il_frames):
+        imitate = self.il and (not self.rl or self.frames < self.opts.il_frames)
+        if self.rl or self.on_policy:
+            rl_loss, il_loss = self.rollout(adjacency, imitate and self.on_policy)
+            if self.rl:
+                loss = loss + rl_loss
+                self.stats["rl"] += rl_loss.item()
+                self.stats["losses_rl"] += 1
+            if il_loss is not None:
+                loss = loss + self.opts.il_weight * il_loss
+                self.stats["il"] += il_loss.item()
+                self.stats["losses_il"] += 1
+        if imitate and not self.on_policy:
             il_loss, n_frames = self.imitation(adjacency)
             loss = loss + self.opts.il_weight * il_loss
-            self.stats["il"] += float(il_loss)
+            self.stats["il"] += il_loss.item()
             self.stats["losses_il"] += 1
             if not self.rl:
                 self.frames += n_frames
@@ -698,7 +722,7 @@ class Trainer:
             tse_loss = self.skill_extension(adjacency)
             if tse_loss is not None:
                 loss = loss + self.opts.tse_weight * tse_loss
-                self.stats["tse"] += float(tse_loss)
+                self.stats["tse"] += tse_loss.item()
                 self.stats["losses_tse"] += 1
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -706,8 +730,9 @@ class Trainer:
         self.optimizer.step()
         self.updates += 1
 
-    def rollout(self, adjacency) -> torch.Tensor:
-        """n steps of every agent with autograd on; returns the A2C loss of the rollout."""
+    def rollout(self, adjacency, imitate: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """n steps of every agent with autograd on; returns the A2C loss of the rollout and, when
+        `imitate`, the cross-entropy of the expert's action on every visited state (on-policy IL)."""
         opts, nav, space = self.opts, self.nav, self.space
         n, b = opts.n_steps, nav.n
         log_probs, values, entropies = [], [], []
@@ -715,13 +740,17 @@ class Trainer:
         dones = np.zeros((n, b), np.float32)
         hidden = _detach(self.hidden)
         scene = nav.kitchen if self.ff else None
-        visited = []
+        visited, il_terms = [], []
         for t in range(n):
             goals = space.destination[nav.target]
             logits, value, hidden, _ = self.model(
                 space, nav.state, goals, hidden, adjacency, scene, self.history
             )
             log_p = F.log_softmax(logits, -1)
+            if imitate:
+                expert = torch.from_numpy(self.expert_table[nav.target, nav.state].astype(np.int64))
+                known = (expert >= 0).float()
+                il_terms.append(-(log_p.gather(1, expert.clamp(min=0)[:, None]).squeeze(1) * known))
             probs = log_p.detach().exp()
             action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
             log_probs.append(log_p.gather(1, action[:, None]).squeeze(1))
@@ -764,7 +793,7 @@ class Trainer:
             opts.value_weight,
             opts.entropy,
         )
-        return loss
+        return loss, (torch.stack(il_terms).mean() if imitate else None)
 
     def _new_episodes(self, idx: np.ndarray) -> None:
         self.nav.draw(idx, self.rng, self.cap)
@@ -1080,7 +1109,7 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
                 f"  validation: SR {val_sr:.1f}%, SPL {val_spl:.1f}% ({val_frames:,} frames in "
                 f"{time.perf_counter() - tv:.1f} s)"
             )
-            if val_sr > trainer.best_val_sr:
+            if val_sr >= trainer.best_val_sr:  # on a tie the later, longer-trained checkpoint
                 trainer.best_val_sr = val_sr
                 save_checkpoint(best, {**trainer.state_dict(), "val_sr": val_sr, "val_spl": val_spl})
         row = _metrics_row(trainer, time.perf_counter() - t0, trainer.frames - f0, val_sr, val_spl)
@@ -1161,6 +1190,8 @@ class LearnedPolicy:
         self.hidden = None  # (h, c) rows per slot; None for FF
         self.history: np.ndarray | None = None  # FF: (slots, history) states
         self.fresh: set[str] = set()
+        self.type_names = object_types()
+        self.attention: dict[str, list[tuple[str, float]]] = {}
 
     def reset(self, agent: str) -> None:
         if agent not in self.slot:
@@ -1217,14 +1248,25 @@ class LearnedPolicy:
         self.fresh.difference_update(agents)
         scene = np.full(len(agents), self.scene, np.int64) if self.config.arch == "ff" else None
         with torch.no_grad():
-            logits, _, rows, _ = self.model(
+            logits, _, rows, extras = self.model(
                 self.space, states, goals, _rows(self.hidden, slots), self.adjacency, scene, history
             )
             actions = torch.multinomial(F.softmax(logits, -1), 1, generator=self.generator).squeeze(1)
         if self.hidden is not None:
             for h, r in zip(self.hidden, rows):
                 h[slots] = r
+        if extras["attention"] is not None:  # for recordings: `explain`
+            weights, types = extras["attention"].float().topk(3, dim=1)
+            self.attention = {
+                a: [(self.type_names[t], float(w)) for t, w in zip(ts.tolist(), ws.tolist()) if w > 0]
+                for a, ts, ws in zip(agents, types, weights)
+            }
         return dict(zip(agents, actions.tolist()))
+
+    def explain(self, agent: str) -> dict:
+        """What the last act() attended to for this agent: the top-3 object types with their weights
+        (KG + attention models; an empty list for the others)."""
+        return {"attention": self.attention.get(agent, [])}
 
 
 def load_policy(checkpoint: Path | str | None, seed: int = 0) -> LearnedPolicy:

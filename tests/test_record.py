@@ -1,0 +1,246 @@
+"""The record stage: episodes and training curves written to .rrd and read back with rerun's own reader,
+the viewer command, exact t-SNE, and the OpenCV figures."""
+
+import subprocess
+import sys
+import textwrap
+from collections import Counter
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from rerun.chunk import RrdReader
+
+from kgnavbench import record
+from kgnavbench.plugins import PluginError
+from kgnavbench.record import RecordError
+
+EPISODE_ENTITIES = {
+    "/view",
+    "/target",
+    "/map",
+    "/episode",
+    "/action",
+    "/scalars/reward",
+    "/scalars/return",
+    "/scalars/collisions",
+    "/scalars/failed",
+    "/scalars/success",
+}
+
+# a policy that explains itself as the learned KG policy does: the top-3 attended types after act()
+EXPLAINING_PLUGIN = """
+DESCRIPTION = "MoveAhead forever, attending to three fixed types"
+
+class Policy:
+    def reset(self, agent):
+        self.acts = 0
+
+    def act(self, observations, infos):
+        self.acts += 1
+        if self.acts > FAIL_AFTER:
+            raise RuntimeError("broken on purpose")
+        return {a: 0 for a in observations}
+
+    def explain(self, agent):
+        return {"attention": [("Fridge", 0.5), ("Egg", 0.3), ("Apple", 0.2), ("Bowl", 0.0)]}
+
+def make_policy(config, spec):
+    return Policy()
+"""
+
+
+def rows_per_entity(path) -> Counter:
+    """Rows per entity path of the recording store (blueprints aside), summed over its chunks."""
+    reader = RrdReader(path)
+    rows: Counter = Counter()
+    for chunk in reader.stream().to_chunks():
+        if not chunk.is_static:
+            rows[str(chunk.entity_path)] += chunk.num_rows
+    return rows
+
+
+def column(path, entity: str, name: str) -> list:
+    """The values of one column (a timeline or a component) of an entity, in chunk order."""
+    values = []
+    for chunk in RrdReader(path).stream().to_chunks():
+        if str(chunk.entity_path) == entity:
+            batch = chunk.to_record_batch()
+            values += batch.column(batch.schema.names.index(name)).to_pylist()
+    return values
+
+
+def test_two_random_walk_episodes_read_back(tmp_path, floorplan1_tasks):
+    path = tmp_path / "walk.rrd"
+    # Stop never drawn: both episodes run to the cap, so every count below is exact
+    out = record.record_episodes(
+        "random_walk", {"stop_probability": "0"}, path, kitchens=["FloorPlan1"], episodes=2, max_steps=6
+    )
+    assert out["episodes"] == 2 and out["steps"] == 12
+    assert list(tmp_path.iterdir()) == [path]  # no .partial left behind
+    reader = RrdReader(path)
+    assert [s.application_id for s in reader.recordings()] == ["kgnavbench_episodes"]
+    assert reader.blueprints(), "the layout travels with the file"
+
+    rows = rows_per_entity(path)
+    assert set(rows) == EPISODE_ENTITIES  # no attention: random_walk has no explain()
+    # each episode: its start, then one row per action
+    assert rows["/view"] == rows["/map"] == 12 + 2
+    assert rows["/target"] == 2
+    assert rows["/episode"] == 2 * 2  # at the start, and with the outcome
+    for entity in EPISODE_ENTITIES - {"/view", "/map", "/target", "/episode"}:
+        assert rows[entity] == 12, entity
+    assert sorted(column(path, "/view", "step")) == list(range(14))
+    assert sorted(column(path, "/view", "episode")) == [0] * 7 + [1] * 7
+    assert sorted(column(path, "/action", "step")) == [s for s in range(14) if s not in (0, 7)]
+    assert sorted(column(path, "/target", "step")) == [0, 7]
+
+
+def test_attention_of_an_explaining_policy_is_logged(tmp_path, floorplan1_tasks, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # ./baselines of the working directory holds a researcher's plugins
+    (tmp_path / "baselines").mkdir()
+    (tmp_path / "baselines" / "explaining.py").write_text(EXPLAINING_PLUGIN.replace("FAIL_AFTER", "99"))
+    path = tmp_path / "out" / "kg.rrd"
+    record.record_episodes("explaining", {}, path, kitchens=["FloorPlan1"], episodes=1, max_steps=5)
+    rows = rows_per_entity(path)
+    assert rows["/attention"] == 5  # a line per action: the top 3 with their weights
+    top3 = {"/attention_weight/Fridge", "/attention_weight/Egg", "/attention_weight/Apple"}
+    assert set(rows) == EPISODE_ENTITIES | {"/attention"} | top3
+    assert all(rows[e] == 5 for e in top3)
+
+
+def test_a_failing_episode_leaves_no_file(tmp_path, floorplan1_tasks, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "baselines").mkdir()
+    (tmp_path / "baselines" / "breaks.py").write_text(EXPLAINING_PLUGIN.replace("FAIL_AFTER", "3"))
+    with pytest.raises(PluginError, match="broken on purpose"):
+        record.record_episodes("breaks", {}, tmp_path / "x.rrd", kitchens=["FloorPlan1"], max_steps=9)
+    assert list(tmp_path.glob("x.rrd*")) == []
+    with pytest.raises(RecordError, match=r"\.rrd"):
+        record.record_episodes("random_walk", {}, tmp_path / "x.txt", kitchens=["FloorPlan1"])
+
+
+def test_training_curves_read_back(tmp_path):
+    csv_path = tmp_path / "metrics.csv"
+    csv_path.write_text(
+        "frames,seconds,frames_per_s,updates,episodes,mean_reward,mean_return,success_rate,"
+        "rl_loss,il_loss,tse_loss,val_sr,val_spl\n"
+        "1000,1.0,1000,10,3,-0.01,-0.5,0.0,1.2,0.8,,,\n"
+        "2000,2.0,1000,20,7,-0.005,-0.2,0.1,1.0,0.6,,12.5,8.0\n"
+        "3000,3.1,968,30,12,0.02,0.4,0.2,0.9,0.5,,,\n"
+    )
+    path = tmp_path / "train.rrd"
+    out = record.record_training(csv_path, path)
+    assert out["rows"] == 3
+    rows = rows_per_entity(path)
+    assert rows["/training/reward/mean_reward"] == 3
+    assert rows["/training/loss/rl_loss"] == 3
+    assert rows["/training/validation/val_sr"] == rows["/training/validation/val_spl"] == 1  # empty cells
+    assert "/training/loss/tse_loss" not in rows  # a column with no value at all
+    assert len(rows) == 11
+    assert column(path, "/training/validation/val_sr", "frames") == [2000]
+    assert column(path, "/training/progress/episodes", "frames") == [1000, 2000, 3000]
+
+    (tmp_path / "bad.csv").write_text("frames,mean_reward\n1000,oops\n")
+    with pytest.raises(RecordError, match="line 2"):
+        record.record_training(tmp_path / "bad.csv", tmp_path / "bad.rrd")
+    (tmp_path / "nofr.csv").write_text("steps,mean_reward\n1000,1\n")
+    with pytest.raises(RecordError, match="frames"):
+        record.record_training(tmp_path / "nofr.csv", tmp_path / "bad.rrd")
+
+
+def test_view_without_display_says_how(tmp_path, monkeypatch, capsys):
+    with pytest.raises(RecordError, match="no such recording"):
+        record.view(tmp_path / "missing.rrd")
+    (tmp_path / "notes.rrd").write_text("not a recording")
+    with pytest.raises(RecordError, match="not a rerun recording"):
+        record.view(tmp_path / "notes.rrd")
+
+    path = tmp_path / "t.rrd"
+    (tmp_path / "m.csv").write_text("frames,mean_reward\n1,0.5\n")
+    record.record_training(tmp_path / "m.csv", path)
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert record.view(path) == 0
+    said = capsys.readouterr().out
+    assert "no display" in said and "rerun t.rrd" in said and "--serve-web" in said
+
+    # with a display: the viewer runs on the file (stubbed here: no window in a test)
+    calls = []
+    monkeypatch.setenv("DISPLAY", ":0")
+    monkeypatch.setattr(record.subprocess, "run", lambda cmd, check: calls.append(cmd) or _Done(3))
+    assert record.view(path) == 3
+    assert calls[0][-1] == str(path) and "rerun" in " ".join(calls[0][:-1])
+
+
+class _Done:
+    def __init__(self, returncode):
+        self.returncode = returncode
+
+
+def test_tsne_is_deterministic_and_keeps_clusters_apart():
+    g = torch.Generator().manual_seed(1)
+    a = torch.randn(20, 10, generator=g)
+    b = torch.randn(20, 10, generator=g) + 20.0
+    x = torch.cat([a, b])
+    y = record.tsne(x, perplexity=8, iterations=300, seed=3)
+    assert y.shape == (40, 2) and torch.isfinite(y).all()
+    assert torch.equal(y, record.tsne(x.clone(), perplexity=8, iterations=300, seed=3))
+    assert not torch.equal(y, record.tsne(x, perplexity=8, iterations=300, seed=4))
+    assert record.tsne(x, dims=3, iterations=50).shape == (40, 3)
+    # every point is nearer to its own cluster's centre than to the other's
+    ca, cb = y[:20].mean(0), y[20:].mean(0)
+    assert ((y[:20] - ca).norm(dim=1) < (y[:20] - cb).norm(dim=1)).all()
+    assert ((y[20:] - cb).norm(dim=1) < (y[20:] - ca).norm(dim=1)).all()
+    spread = max((y[:20] - ca).norm(dim=1).max(), (y[20:] - cb).norm(dim=1).max())
+    assert (ca - cb).norm() > 2 * spread
+    with pytest.raises(ValueError):
+        record.tsne(torch.zeros(5))
+
+
+def _is_figure(path, size=(1000, 600)) -> bool:
+    """A PNG of `size` with more than a blank page on it: text and axes, and coloured data marks."""
+    img = cv2.imread(str(path))
+    assert img is not None, path
+    assert img.shape == (size[1], size[0], 3)
+    ink = (img < 250).any(axis=2).mean()
+    colour = (img.max(axis=2).astype(int) - img.min(axis=2) > 60).sum()
+    return ink > 0.003 and colour > 50
+
+
+def test_figures_are_pngs_of_the_right_size(tmp_path):
+    labels = ["Random walk", "LSTM A3C", "+KG+Attention (ours)"]
+    p = record.bar_line_figure(
+        labels,
+        [12.0, 5.5, 1.7],
+        [3.0, float("nan"), 44.1],
+        tmp_path / "a.png",
+        "t",
+        "collisions",
+        "last view %",
+    )
+    assert _is_figure(p)
+    pts = np.array([[0.0, 0.0], [1.0, 2.0], [3.0, -1.0]])
+    assert _is_figure(record.scatter_figure(pts, ["Fridge", "Egg", "Apple"], tmp_path / "b.png", "t-SNE"))
+    series = {"a": ([0, 1000, 2000], [0.0, 0.2, 0.5]), "b": ([0, 1000, 2000], [0.1, float("nan"), 0.7])}
+    assert _is_figure(record.curves_figure(series, tmp_path / "c.png", "curves", "frames", "SR"))
+    assert _is_figure(
+        record.curves_figure(series, tmp_path / "d.png", "small", "x", "y", size=(640, 400)), (640, 400)
+    )
+    with pytest.raises(RecordError):
+        record.bar_line_figure(labels, [1.0], [1.0], tmp_path / "e.png", "t", "a", "b")
+
+
+def test_recording_costs_nothing_when_off():
+    # the other stages and the CLI must not import rerun (nor this stage) until a recording is asked for
+    code = textwrap.dedent(
+        """
+        import sys
+        import kgnavbench.cli, kgnavbench.evaluate, kgnavbench.env
+        print("rerun" in sys.modules, "kgnavbench.record" in sys.modules)
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"]
