@@ -1,8 +1,10 @@
 """IL: imitation learning alone, Table I's "IL" row.
 
-The LSTM A3C network trained only by cross-entropy on one expert trajectory per training target (the
-paper's walk-back from the destination by default; il_expert=shortest for BFS-optimal paths from a
-training start). No reinforcement: frames count the expert steps trained on.
+The LSTM A3C network trained only by imitation, no reward. By default (il_expert=on_policy) the
+agents walk with their own policy and learn the BFS-optimal actions of every state they visit
+(DAgger's labels); il_expert=walk_back is the paper's expert (one 20-step walk back from each
+destination, reversed), il_expert=shortest one BFS-optimal path per target. Frames count the steps
+trained on.
 
     kgnavbench train --method imitation --frames 1000000
     kgnavbench eval --method imitation --run runs/train/imitation-...
@@ -13,7 +15,7 @@ from dataclasses import dataclass
 from kgnavbench.models import ModelConfig
 from kgnavbench.train import TrainOptions, learn, load_policy
 
-DESCRIPTION = "imitation learning only: cross-entropy on expert trajectories (LSTM network)"
+DESCRIPTION = "imitation learning only: the expert's actions, no reward (LSTM network)"
 
 
 @dataclass

@@ -50,6 +50,8 @@ COLUMN_TITLES = {
 KINDS = ("static", "actionable")
 SEEN_CAP, UNSEEN_CAP = 100, 1000
 LONG_PATH = 5
+# 2: all episodes of a kitchen in one env reset (a policy's random stream differs from format 1's)
+EVALUATION_FORMAT = 2
 SPLITS = ("table", "train", "val", "test")
 
 
@@ -155,50 +157,53 @@ def kitchen_episodes(tasks: KitchenTasks, per_target: int) -> list[tuple[str, li
 
 
 def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) -> list[EpisodeResult]:
-    """Every fixed episode of one kitchen, one env reset per target (an agent per episode)."""
+    """Every fixed episode of one kitchen at once: one env reset, an agent per episode (each with its
+    column's cap), so a batched policy sees them all in one act() call."""
     tasks = load_tasks(kitchen)
     seed = config.seed * 1000 + KITCHEN_NAMES.index(kitchen)  # the same per kitchen, resumable
     policy = plugin.make_policy(plugin_config, policy_spec(config, seed, tasks.graph.views.shape[1]))
+    columns, episodes = [], []
+    for column, target_episodes in kitchen_episodes(tasks, config.episodes_per_target):
+        columns += [column] * len(target_episodes)
+        episodes += target_episodes
     env = parallel_env(
         kitchen=kitchen,
-        n_agents=config.episodes_per_target,
+        n_agents=len(episodes),
         targets="all",
         success_rule=config.success_rule,
         stop_ends=config.stop_ends,
         tasks=tasks,
     )
-    results = []
-    for column, episodes in kitchen_episodes(tasks, config.episodes_per_target):
-        observations, infos = env.reset(options={"episodes": episodes})
-        for agent in env.agents:
-            guarded(plugin, "reset()", policy.reset, agent)
-        start = {agent: e["start"] for agent, e in zip(env.agents, episodes)}
-        finished: dict[str, EpisodeResult] = {}
-        while env.agents:
-            shown = infos if plugin.privileged else _without_expert(infos)
-            actions = guarded(plugin, "act()", policy.act, observations, shown)
-            _check_actions(plugin, actions, env.agents)
-            observations, _, terminations, truncations, infos = env.step(actions)
-            for agent in list(observations):
-                if terminations[agent] or truncations[agent]:
-                    i = infos[agent]
-                    finished[agent] = EpisodeResult(
-                        kitchen=kitchen,
-                        target=i["target"],
-                        kind=i["target_kind"],
-                        column=column,
-                        start=start[agent],
-                        max_steps=episodes[0]["max_steps"],
-                        success=i["success"],
-                        path_length=i["path_length"],
-                        shortest_path=i["shortest_path"],
-                        collisions=i["collisions"],
-                        last_view_shows_target=i["last_view_shows_target"],
-                        episode_length=i["episode_length"],
-                    )
-                    del observations[agent], infos[agent]
-        results.extend(finished[agent] for agent in start)  # in episode order, not finishing order
-    return results
+    observations, infos = env.reset(options={"episodes": episodes})
+    agents = list(env.agents)
+    episode_of = {agent: n for n, agent in enumerate(agents)}
+    for agent in agents:
+        guarded(plugin, "reset()", policy.reset, agent)
+    finished: dict[str, EpisodeResult] = {}
+    while env.agents:
+        shown = infos if plugin.privileged else _without_expert(infos)
+        actions = guarded(plugin, "act()", policy.act, observations, shown)
+        _check_actions(plugin, actions, env.agents)
+        observations, _, terminations, truncations, infos = env.step(actions)
+        for agent in list(observations):
+            if terminations[agent] or truncations[agent]:
+                i, n = infos[agent], episode_of[agent]
+                finished[agent] = EpisodeResult(
+                    kitchen=kitchen,
+                    target=i["target"],
+                    kind=i["target_kind"],
+                    column=columns[n],
+                    start=episodes[n]["start"],
+                    max_steps=episodes[n]["max_steps"],
+                    success=i["success"],
+                    path_length=i["path_length"],
+                    shortest_path=i["shortest_path"],
+                    collisions=i["collisions"],
+                    last_view_shows_target=i["last_view_shows_target"],
+                    episode_length=i["episode_length"],
+                )
+                del observations[agent], infos[agent]
+    return [finished[agent] for agent in agents]  # in episode order, not finishing order
 
 
 def _without_expert(infos: dict) -> dict:
@@ -439,6 +444,7 @@ def run_identity(config: EvalConfig, plugin: Plugin, plugin_config) -> dict:
             "seen_cap": SEEN_CAP,
             "unseen_cap": UNSEEN_CAP,
             "long_path": LONG_PATH,
+            "evaluation_format": EVALUATION_FORMAT,
             "task_file_sha256": hashlib.sha256(TASKS_FILE.read_bytes()).hexdigest(),
         },
     }

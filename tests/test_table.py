@@ -65,7 +65,7 @@ GOOD = SPEC_FILE.read_text()
         (lambda t: t.replace('checkpoint = "best_val_sr"', 'checkpoint = "last"'), "protocol.checkpoint"),
         (lambda t: t.replace("frames = 2_000_000", "frames = -5"), "presets.quick.frames"),
         (lambda t: t.replace("frames = 2_000_000", 'frames = "lots"'), "presets.quick.frames"),
-        (lambda t: t.replace("episodes = 3", "episodes = 101"), "presets.quick.episodes"),
+        (lambda t: t.replace("episodes = 2\n", "episodes = 101\n"), "presets.quick.episodes"),
         (lambda t: t.replace('train_kitchens = ["FloorPlan1"]', 'train_kitchens = ["Kitchen9"]'), "Kitchen9"),
         (lambda t: t.replace('method = "ff_a3c"', 'method = "ff_a4c"'), "rows[2].method"),
         (lambda t: t.replace('name = "IL"', 'name = "Random walk"'), "row name is used twice"),

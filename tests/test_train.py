@@ -220,7 +220,10 @@ def test_lstm_state_is_reset_at_episode_boundaries(tmp_path, floorplan1_tasks):
 
 def test_imitation_loss_falls_on_a_fixed_batch(tmp_path, floorplan1_tasks):
     trainer = train.Trainer(
-        tiny_run(tmp_path), tiny_options(lr=3e-3), models.ModelConfig(lstm=32, hidden=32), False
+        tiny_run(tmp_path),
+        tiny_options(lr=3e-3, il_expert="walk_back"),
+        models.ModelConfig(lstm=32, hidden=32),
+        False,
     )
     torch.manual_seed(0)
     losses = []
@@ -233,8 +236,30 @@ def test_imitation_loss_falls_on_a_fixed_batch(tmp_path, floorplan1_tasks):
     assert losses[-1] < 0.5 * losses[0]
 
 
+def test_on_policy_labels_are_every_optimal_action(space):
+    rng = np.random.default_rng(0)
+    targets = rng.integers(0, len(space.target_ids), 400)
+    states = rng.integers(0, space.n_states, 400)
+    states[:7], targets[:7] = space.destination[:7], np.arange(7)  # on the goal: Stop only
+    optimal, known = train.optimal_actions(space, targets, states)
+    for t, s, row, ok in zip(targets, states, optimal, known):
+        d = space.dist[t, s]
+        assert ok == (d >= 0)
+        if d == 0:
+            assert row.tolist() == [a == STOP for a in range(10)]
+        elif d > 0:
+            assert row.any() and not row[STOP]
+            for a in range(10):
+                assert row[a] == (space.dist[t, space.next_state[s, a]] == d - 1)
+    # the loss is -log of the optimal actions' total probability: uniform policy, k optimal -> -log(k/10)
+    log_p = torch.full((400, 10), float(np.log(0.1)))
+    loss = train.optimal_action_loss(log_p, optimal, known)
+    expected = np.where(known, -np.log(np.maximum(optimal.sum(1), 1) / 10), 0.0)
+    assert loss.numpy() == pytest.approx(expected, abs=1e-5)
+
+
 def test_expert_sequences_reach_every_destination(space):
-    for expert in train.EXPERTS:
+    for expert in ("walk_back", "shortest"):
         seq = train.expert_sequences(space, expert, 20, np.random.default_rng(0))
         for i in range(len(seq.goal)):
             n = int(seq.mask[i].sum())

@@ -1,0 +1,83 @@
+"""Training and inference speed of the learned methods, end to end (navigators + learner), in frames/s.
+
+    python benchmarks/train_speed.py                      # every row of Table I's learned methods
+    python benchmarks/train_speed.py --updates 5 --kitchens FloorPlan1
+
+For each method and options (default sizes: 64 agents in each of the 20 training kitchens, rollouts of
+20 steps, LSTM 256, bf16 autocast) it builds the trainer exactly as `kgnavbench train` does, runs one
+warm-up update, then times `--updates` updates: frames (agent steps) per second of the whole update
+(the rollout's forward passes, the IL and TSE passes, backward and the optimiser step). Inference:
+the trained-free network stepping the validation kitchens' fixed episodes under no_grad, as
+validation and `eval --run` do. Nothing is written outside a temporary folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from kgnavbench import train
+from kgnavbench.plugins import load_plugin
+
+ROWS = [
+    ("ff_a3c", {}),
+    ("lstm_a3c", {}),
+    ("lstm_a3c", {"il": "true"}),
+    ("lstm_a3c", {"tse": "true"}),
+    ("lstm_a3c", {"il": "true", "tse": "true"}),
+    ("kg_attention", {"attention": "false"}),
+    ("kg_attention", {"il": "false", "tse": "false"}),
+    ("kg_attention", {}),
+]
+
+
+def trainer_of(method: str, options: dict, kitchens: tuple[str, ...], directory: Path):
+    plugin = load_plugin(method)
+    config = plugin.config(options)
+    run = train.Run(directory, method, 10**12, 0, kitchens, progress=lambda line: None)
+    model_config = plugin.module.model_config(config)
+    return train.Trainer(run, config, model_config, rl=method != "imitation"), config
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--updates", type=int, default=10)
+    parser.add_argument("--kitchens", default="", help="training kitchens (default: all 20)")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    kitchens = train.training_kitchens(tuple(k for k in args.kitchens.split(",") if k))
+    print(f"{len(kitchens)} training kitchens, {args.threads} threads, torch {torch.__version__}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for method, options in ROWS:
+            trainer, config = trainer_of(method, options, kitchens, Path(tmp))
+            trainer.update()  # warm-up: first-call allocations
+            start, frames = time.perf_counter(), trainer.frames
+            for _ in range(args.updates):
+                trainer.update()
+            seconds = time.perf_counter() - start
+            rate = (trainer.frames - frames) / seconds
+            label = method + (" " + " ".join(f"{k}={v}" for k, v in options.items()) if options else "")
+            print(
+                f"train  {label:44s} {trainer.nav.n:5d} agents  {rate:9,.0f} frames/s  "
+                f"({args.updates} updates in {seconds:.1f} s; il={config.il} tse={config.tse})"
+            )
+        # inference: validation episodes (cap 1000) with the last trainer's network, as `eval --run` does
+        trainer.opts.val_episodes = 1
+        trainer.validate()  # loads the validation kitchens
+        trainer.opts.val_episodes = 20
+        start = time.perf_counter()
+        sr, spl, frames = trainer.validate()
+        seconds = time.perf_counter() - start
+        print(
+            f"infer  {'kg_attention (validation episodes)':44s} {frames:,} frames in {seconds:.1f} s: "
+            f"{frames / seconds:9,.0f} frames/s"
+        )
+
+
+if __name__ == "__main__":
+    main()
