@@ -23,7 +23,9 @@ class Config(TrainOptions):
 
 
 def model_config(config: Config) -> ModelConfig:
-    return ModelConfig(arch="ff", kg="none", hidden=config.hidden, history=config.history)
+    return ModelConfig(
+        arch="ff", kg="none", hidden=config.hidden, history=config.history, pixels=config.pixels
+    )
 
 
 def train(config: Config, run) -> None:

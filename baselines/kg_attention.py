@@ -40,6 +40,7 @@ def model_config(config: Config) -> ModelConfig:
         hidden=config.hidden,
         lstm=config.lstm,
         gcn=config.gcn,
+        pixels=config.pixels,
     )
 
 

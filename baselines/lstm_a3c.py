@@ -26,7 +26,7 @@ class Config(TrainOptions):
 
 
 def model_config(config: Config) -> ModelConfig:
-    return ModelConfig(arch="lstm", kg="none", hidden=config.hidden, lstm=config.lstm)
+    return ModelConfig(arch="lstm", kg="none", hidden=config.hidden, lstm=config.lstm, pixels=config.pixels)
 
 
 def train(config: Config, run) -> None:

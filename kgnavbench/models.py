@@ -667,6 +667,9 @@ class ActorCritic(nn.Module):
         cfg.validate()
         self.cfg, self.n_types, self.n_actions = cfg, n_types, n_actions
         self.encoder = Encoder(cfg.feature_dim, n_types) if cfg.pixels else None
+        if cfg.pixels:  # the encoder's output is standardized like the cached features (`standardize`)
+            self.register_buffer("feature_mean", torch.zeros(cfg.feature_dim))
+            self.register_buffer("feature_std", torch.ones(cfg.feature_dim))
         frames = cfg.history if cfg.arch == "ff" else 1
         self.siamese = nn.Linear(frames * cfg.feature_dim, cfg.hidden)  # W_s
         self.fusion = nn.Linear(2 * cfg.hidden, cfg.hidden)  # W_f
@@ -704,7 +707,8 @@ class ActorCritic(nn.Module):
         """(B, [frames,] 512) features, or uint8 views when pixels -> (B, frames * 512) float."""
         if self.encoder is not None:
             lead = x.shape[: x.dim() - 3]
-            x = self.encoder(x.reshape(-1, *x.shape[-3:])).reshape(*lead, -1)
+            x = self.encoder(x.reshape(-1, *x.shape[-3:]))
+            x = ((x - self.feature_mean) / self.feature_std.clamp_min(0.1)).reshape(*lead, -1)
         dtype = self.siamese.weight.dtype
         if frames > 1 and (x.dim() != 3 or x.shape[1] != frames):
             raise ModelError(f"ff views must be (B, history={frames}, features), got {tuple(x.shape)}")

@@ -142,6 +142,9 @@ class TrainOptions:
     val_kitchens: int = 5  # the first N validation kitchens
     val_episodes: int = 5  # the first N fixed episodes per target
     threads: int = 2
+    # end to end from pixels: the encoder CNN (from the committed weights) trains with the policy on
+    # the 84x84 views instead of reading cached features (the GPU path; slow on a CPU)
+    pixels: bool = False
 
     def __post_init__(self) -> None:
         self.check()  # a bad option fails when the config is made, before a run directory exists
@@ -295,6 +298,7 @@ class StateSpace:
     kitchen_ptr: np.ndarray
     tse_types: np.ndarray  # (K, 125) pickupable types that are no training target of the kitchen
     tasks: list[KitchenTasks] = field(repr=False)
+    views: np.ndarray | None = field(default=None, repr=False)  # (S, 84, 84, 3) uint8, pixel models
 
     @property
     def n_states(self) -> int:
@@ -306,8 +310,11 @@ class StateSpace:
         self.objects_t = torch.from_numpy(self.objects.astype(np.float32))
 
 
-def build_space(kitchens, targets: str = "seen", success_rule: str = "destination") -> StateSpace:
-    """Load the kitchens' state graphs, features and targets ('seen': training targets; 'all')."""
+def build_space(
+    kitchens, targets: str = "seen", success_rule: str = "destination", pixels: bool = False
+) -> StateSpace:
+    """Load the kitchens' state graphs, features and targets ('seen': training targets; 'all'), and
+    with `pixels` their views."""
     types = {t: i for i, t in enumerate(object_types())}
     parts, rows, offsets, all_tasks = [], [], [0], []
     tse_types = np.zeros((len(kitchens), len(types)), bool)
@@ -361,6 +368,7 @@ def build_space(kitchens, targets: str = "seen", success_rule: str = "destinatio
         ok=np.concatenate([g.ok for g, _, _ in parts]),
         objects=np.concatenate([g.object_vectors for g, _, _ in parts]),
         features=np.concatenate([f for _, f, _ in parts]),
+        views=np.concatenate([g.views for g, _, _ in parts]) if pixels else None,
         kitchen_of=np.repeat(np.arange(len(kitchens)), np.diff(offsets)),
         closed=np.concatenate([g.opened < 0 for g, _, _ in parts]),
         target_ids=[t.object_id for _, _, _, t in rows],
@@ -644,11 +652,16 @@ class Model:
         target images of `goals` (states)."""
         s = torch.from_numpy(np.ascontiguousarray(states))
         g = torch.from_numpy(np.ascontiguousarray(goals))
-        view = space.features_t[torch.from_numpy(history)] if history is not None else space.features_t[s]
+        if self.config.pixels:
+            view = torch.from_numpy(space.views[history if history is not None else states])
+            target = torch.from_numpy(space.views[goals])
+        else:
+            view = space.features_t[torch.from_numpy(history) if history is not None else s]
+            target = space.features_t[g]
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
             logits, value, hidden, extras = self.net(
                 view,
-                space.features_t[g],
+                target,
                 space.objects_t[s],
                 space.objects_t[g],
                 hidden,
@@ -666,10 +679,15 @@ class Trainer:
         self.kitchens = list(run.kitchens)
         self.model_config = dataclasses.replace(model_config, n_scenes=len(self.kitchens))
         self.ff = self.model_config.arch == "ff"
-        self.space = build_space(self.kitchens, "seen", options.success_rule)
+        self.space = build_space(self.kitchens, "seen", options.success_rule, self.model_config.pixels)
         # seeded after build_space: encoding features on a cache miss draws from torch's generator
         torch.manual_seed(run.seed)
         net = models.make_model(self.model_config)
+        if net.encoder is not None:  # end to end: start from the committed encoder and its statistics
+            net.encoder.load_state_dict(models.load_encoder().state_dict())
+            stats = models.encoder_feature_stats()
+            net.feature_mean.copy_(stats["mean"])
+            net.feature_std.copy_(stats["std"])
         self.model = Model(net, self.model_config, models.CoVisibility(), options.bf16)
         self.optimizer = torch.optim.Adam(net.parameters(), lr=options.lr)
         self.rng = np.random.default_rng(run.seed)
@@ -932,7 +950,10 @@ class Trainer:
         if self.val_space is None:
             names = load_task_file()["splits"]["val"][: self.opts.val_kitchens]
             self.val_space = build_space(
-                sorted(names, key=KITCHEN_NAMES.index), "all", self.opts.success_rule
+                sorted(names, key=KITCHEN_NAMES.index),
+                "all",
+                self.opts.success_rule,
+                self.model_config.pixels,
             )
         sp = self.val_space
         rows = [(r, s) for r, starts in enumerate(sp.fixed_starts) for s in starts[: self.opts.val_episodes]]
@@ -1110,7 +1131,7 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
     every = options.log_every
     next_log = (trainer.frames // every + 1) * every
     next_val = (trainer.frames // options.val_every + 1) * options.val_every
-    agents = trainer.nav.n if rl else 0
+    agents = trainer.nav.n if rl or trainer.on_policy else 0
     progress(
         f"training {run.method} on {len(trainer.kitchens)} kitchens "
         f"({len(trainer.space.target_ids)} targets, "
@@ -1238,7 +1259,7 @@ class LearnedPolicy:
         for k in sorted(candidates, key=KITCHEN_NAMES.index):
             views = load_tasks(k).graph.views
             if state < len(views) and np.array_equal(views[state], view):
-                self.space = build_space([k], "all", self.success_rule)
+                self.space = build_space([k], "all", self.success_rule, self.config.pixels)
                 self.rows = {t: r for r, t in enumerate(self.space.target_ids)}
                 self.scene = self.training_kitchens.index(k) if k in self.training_kitchens else 0
                 return

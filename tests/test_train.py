@@ -374,6 +374,7 @@ def test_corrupt_checkpoint_and_foreign_run_are_refused(capsys, tmp_path, floorp
         ("lstm_a3c", ("il=true", "tse=true", "tse_importance=true")),
         ("kg_attention", ()),
         ("kg_attention", ("attention=false", "kg_graph=per_step")),
+        ("lstm_a3c", ("pixels=true",)),  # end to end from the views
     ],
 )
 def test_train_then_eval_every_learned_plugin(capsys, tmp_path, floorplan1_tasks, method, extra):
@@ -393,3 +394,12 @@ def test_train_then_eval_every_learned_plugin(capsys, tmp_path, floorplan1_tasks
     assert code == 0
     summary = json.loads(out)["summary"]
     assert summary["seen_seen/static"]["episodes"] > 0
+    if method == "kg_attention" and not extra:
+        # a recording of one episode, the top-3 attended objects in it, and how to view it
+        rrd = tmp_path / "episodes.rrd"
+        argv = ["eval", "--method", method, "--run", str(run_dir), "--kitchens", "FloorPlan1"]
+        argv += ["--episodes", "1", "--runs", str(tmp_path), "--record", str(rrd), "--record-episodes", "1"]
+        assert main(argv) == 0
+        assert "recorded 1 episodes" in capsys.readouterr().out and rrd.stat().st_size > 1000
+        assert main(["train", *_train(tmp_path, method, 400)[4:], "--record", str(tmp_path / "t.rrd")]) == 0
+        assert "recorded" in capsys.readouterr().out and (tmp_path / "t.rrd").exists()
