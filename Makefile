@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 THOR   ?= ../shared/thor_data
 
-.PHONY: table baselines test lint kitchens tasks encoder bench docs clean
+.PHONY: table baselines figures test lint kitchens tasks encoder bench docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -46,6 +46,10 @@ kitchens: $(STAMP)
 ## tasks: rebuild kgnavbench/data/tasks.json.gz (splits, targets, fixed episodes; committed)
 tasks: $(STAMP)
 	$(BIN)/python -m kgnavbench.tasks
+
+## figures: the paper's figures from the table's runs into docs/figures (runs what is missing first)
+figures: $(STAMP)
+	$(BIN)/kgnavbench figures --preset $(PRESET)
 
 ## encoder: retrain the committed view encoder kgnavbench/data/encoder.pt (deterministic, ~3 min)
 encoder: $(STAMP)

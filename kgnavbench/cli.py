@@ -13,6 +13,7 @@
     kgnavbench train --method NAME [--set KEY=VALUE] [--frames N] [--seed S] [--kitchens A,B]
                      [--runs DIR] [--record FILE.rrd]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR]
+    kgnavbench figures [--preset quick] [--runs DIR] [--out DIR]
     kgnavbench view FILE.rrd
 
 Bad input (an unknown kitchen or action, an unreachable start, a malformed pose, an out-of-range size,
@@ -386,6 +387,19 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_figures(args: argparse.Namespace) -> int:
+    from .record import RecordError, figures_of_table
+    from .table import TableError
+    from .train import TrainError
+
+    try:
+        paths = figures_of_table(args.preset, args.runs, args.out, args.spec, progress=print)
+    except (RecordError, TableError, TrainError) as e:
+        raise UsageError(str(e)) from e
+    print(f"wrote {', '.join(str(p) for p in paths)}")
+    return 0
+
+
 def cmd_view(args: argparse.Namespace) -> int:
     from .record import RecordError, view
 
@@ -586,6 +600,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="record the training curves with rerun")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser(
+        "figures",
+        help="the paper's figures from a Table I preset's runs (PNG)",
+        description="Collisions per episode and last-view-shows-target rate on unseen kitchens per "
+        "method, a t-SNE of the KG model's third GCN layer, and the training curves, from the runs of "
+        "`kgnavbench table --preset PRESET` (missing runs are made first).",
+    )
+    p.add_argument("--preset", default="quick", help="the table preset whose runs to draw (default quick)")
+    p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    p.add_argument("--out", type=Path, default=Path("docs/figures"), help="output folder (docs/figures)")
+    p.set_defaults(func=cmd_figures)
 
     p = sub.add_parser(
         "view",

@@ -22,6 +22,8 @@ on the right). `view` opens the rerun viewer on a file, or says how to where the
 
 Figures (PNG, OpenCV only): `bar_line_figure` (bars with a line on a second axis), `scatter_figure`
 (labelled points, e.g. a t-SNE), `curves_figure` (training curves); `tsne` is exact t-SNE in torch.
+`figures` draws the paper's figures from the table's runs (collisions and last-view rate on unseen
+kitchens, the t-SNE of the GCN's node features, training curves); `figures_of_table` from a preset.
 
 Nothing here is imported by the other stages: recording costs nothing when it is off.
 """
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import math
 import os
 import shutil
@@ -760,8 +763,8 @@ def bar_line_figure(
     size=FIGURE_SIZE,
 ) -> Path:
     """Bars (left axis) and a line with markers (right axis), one slot per label; the paper's figure of
-    collisions per episode (bars) and the last-view-shows-target rate (line) per method. A NaN value
-    draws nothing in its slot."""
+    collisions per episode (bars) and the last-view-shows-target rate (line) per method. Each slot's
+    values are written under its label in the colours of their series. A NaN value draws nothing."""
     if not labels or not len(labels) == len(bars) == len(line):
         raise RecordError(f"{len(labels)} labels, {len(bars)} bars and {len(line)} line values must match")
     img = _canvas(title, size)
@@ -775,31 +778,44 @@ def bar_line_figure(
     ax.y_axis(bar_ticks, bar_label, "left")
     ax.y_axis(line_ticks, line_label, "right", line_colour, grid=False)
     slot = (ax.right - ax.left) / len(labels)
-    points = []
+    points, values = [], []
     for i, (label, b, v) in enumerate(zip(labels, bars, line)):
         cx = int(ax.left + (i + 0.5) * slot)
         if math.isfinite(b):
             _, top = ax.px(0, b)
             half = int(slot * 0.3)
             cv2.rectangle(img, (cx - half, top), (cx + half, ax.bottom), PALETTE[0], -1)
-            _text(img, f"{b:.2f}", (cx, top - 5), 0.42, align="centre")
         if math.isfinite(v):
             points.append((cx, ax.px(0, v, (line_ticks[0], line_ticks[-1]))[1]))
-        for k, text in enumerate(_wrap(label, int(slot) - 6, 0.45)[:3]):
+        names = _wrap(label, int(slot) - 6, 0.45)[:3]
+        for k, text in enumerate(names):
             _text(img, text, (cx, ax.bottom + 10 + 18 * k), 0.45, align="centre", valign="top")
+        values.append((cx, ax.bottom + 14 + 18 * len(names), b, v))
     if len(points) > 1:
         cv2.polylines(img, [np.array(points, np.int32)], False, line_colour, 2, cv2.LINE_AA)
-    for p, v in zip(points, [v for v in line if math.isfinite(v)]):
+    for p in points:
         cv2.circle(img, p, 5, line_colour, -1, cv2.LINE_AA)
-        # on a white patch above the marker: readable over a bar, clear of the line's own marker
-        (w, h), _ = cv2.getTextSize(f"{v:.1f}", FONT, 0.42, 1)
-        cv2.rectangle(
-            img, (p[0] - w // 2 - 2, p[1] - 12 - h), (p[0] + w // 2 + 2, p[1] - 8), (255, 255, 255), -1
-        )
-        _text(img, f"{v:.1f}", (p[0], p[1] - 10), 0.42, line_colour, align="centre")
+    # the values under each slot's name, in their series' colours: labels in the plot would collide
+    # with the line and the bars wherever the two are close
+    for cx, y, b, v in values:
+        for k, (value, colour) in enumerate(((b, PALETTE[0]), (v, line_colour))):
+            if math.isfinite(value):
+                _text(
+                    img,
+                    f"{value:.2f}" if k == 0 else f"{value:.1f}",
+                    (cx, y + 17 * k),
+                    0.45,
+                    colour,
+                    align="centre",
+                    valign="top",
+                )
     ax.frame()
     _legend(img, [(bar_label, PALETTE[0], "bar"), (line_label, line_colour, "line")], width - 100, 58)
     return _write_png(path, img)
+
+
+def _overlaps(box, boxes) -> bool:
+    return any(box[0] < o[2] and o[0] < box[2] and box[1] < o[3] and o[1] < box[3] for o in boxes)
 
 
 def _place_label(label: str, p, placed, width: int, height: int):
@@ -817,9 +833,7 @@ def _place_label(label: str, p, placed, width: int, height: int):
     for (x, y), anchor in candidates:
         box = (x, y, x + w, y + h + 2)
         inside = box[0] >= 0 and box[1] >= 40 and box[2] < width and box[3] < height
-        if inside and not any(
-            box[0] < o[2] and o[0] < box[2] and box[1] < o[3] and o[1] < box[3] for o in placed
-        ):
+        if inside and not _overlaps(box, placed):
             return box, anchor
     (x, y), _ = candidates[0]
     return (x, y, x + w, y + h + 2), None
@@ -870,8 +884,12 @@ def curves_figure(
     xlabel: str,
     ylabel: str,
     size=FIGURE_SIZE,
+    x_include: tuple[float, ...] = (),
+    y_include: tuple[float, ...] = (),
 ) -> Path:
-    """One line per named series (xs, ys) on shared axes, with a legend; NaN values break a line."""
+    """One line per named series (xs, ys) on shared axes, with a legend; NaN values break a line. The
+    axes cover the data and the values of x_include and y_include (0: curves over frames from the start,
+    a rate from zero)."""
     clean = {}
     for name, (xs, ys) in series.items():
         xs, ys = list(map(float, xs)), list(map(float, ys))
@@ -882,11 +900,17 @@ def curves_figure(
     ys_all = [y for _, ys in clean.values() for y in ys if math.isfinite(y)]
     if not xs_all or not ys_all:
         raise RecordError("curves_figure needs at least one finite point")
+    xs_all += [float(x) for x in x_include]
+    ys_all += [float(y) for y in y_include]
     img = _canvas(title, size)
     width, height = size
-    x_ticks = _ticks(min(xs_all), max(xs_all))
+    # the x axis ends at the data (2,003,200 frames must not stretch it to a 2.5M tick)
+    x_hi = max(xs_all)
+    x_ticks = _ticks(min(xs_all), x_hi)
+    x_ticks = [t for t in x_ticks if t <= x_hi + 1e-9 * abs(x_hi)] or x_ticks
+    x_hi = max(x_hi, x_ticks[-1])
     y_ticks = _ticks(min(ys_all), max(ys_all))
-    ax = _Axes(img, 100, 80, width - 40, height - 80, (x_ticks[0], x_ticks[-1]), (y_ticks[0], y_ticks[-1]))
+    ax = _Axes(img, 100, 80, width - 40, height - 80, (x_ticks[0], x_hi), (y_ticks[0], y_ticks[-1]))
     ax.y_axis(y_ticks, ylabel)
     ax.x_ticks(x_ticks, xlabel)
     entries = []
@@ -913,3 +937,207 @@ def curves_figure(
         cv2.line(img, (ax.left + 10, y), (ax.left + 34, y), colour, 2, cv2.LINE_AA)
         _text(img, name, (ax.left + 42, y), 0.45, valign="middle")
     return _write_png(path, img)
+
+
+# ------------------------------------------------------------------------------------------------
+# The paper's figures from the table's runs
+
+TSNE_SIZE = (1200, 900)  # more room than FIGURE_SIZE: a label per object type
+
+
+def _run_dir(path, what: str) -> Path:
+    path = Path(path)
+    if not path.is_dir():
+        raise RecordError(f"{path}: no such {what} run directory")
+    return path
+
+
+def read_episodes(eval_dir) -> list[dict]:
+    """Every episode of an evaluation run: the JSON lines of eval_dir/episodes/<kitchen>.jsonl."""
+    eval_dir = _run_dir(eval_dir, "evaluation")
+    files = sorted((eval_dir / "episodes").glob("*.jsonl"))
+    if not files:
+        raise RecordError(f"{eval_dir} holds no episodes/*.jsonl: not a finished evaluation run")
+    episodes = []
+    for path in files:
+        try:
+            lines = path.read_text().splitlines()
+        except (OSError, UnicodeDecodeError) as e:
+            raise RecordError(f"cannot read {path}: {e}") from e
+        for n, line in enumerate(lines, start=1):
+            if not line.strip():
+                continue
+            try:
+                episode = json.loads(line)
+                if not isinstance(episode, dict):
+                    raise ValueError("not a JSON object")
+                episodes.append(episode)
+            except ValueError as e:
+                raise RecordError(f"{path}, line {n}: not an episode ({e})") from e
+    return episodes
+
+
+def unseen_kitchen_stats(episodes: list[dict], where="episodes") -> tuple[float, float] | None:
+    """(mean collisions per episode, % of episodes whose last view shows the target) over the
+    episodes in unseen kitchens; None where there are none."""
+    unseen = [e for e in episodes if e.get("column") == "unseen_kitchens"]
+    if not unseen:
+        return None
+    try:
+        collisions = sum(float(e["collisions"]) for e in unseen) / len(unseen)
+        shown = 100.0 * sum(bool(e["last_view_shows_target"]) for e in unseen) / len(unseen)
+    except (KeyError, TypeError, ValueError) as e:
+        raise RecordError(
+            f"{where}: an unseen-kitchens episode lacks collisions or last_view_shows_target ({e})"
+        ) from e
+    return collisions, shown
+
+
+def _kg_checkpoint(train_dir: Path) -> tuple[dict, Path] | None:
+    """The best-validation checkpoint of a training run when its model has an accumulated knowledge
+    graph, else None."""
+    from .train import TrainError, load_checkpoint  # lazily: recording must not cost a trainer import
+
+    path = train_dir / "best.pt"
+    if not path.exists():
+        path = train_dir / "last.pt"  # a run stopped before its first validation
+    if not path.exists():
+        return None
+    try:
+        ck = load_checkpoint(path)
+    except TrainError as e:
+        raise RecordError(str(e)) from e
+    config = ck["model_config"]
+    if config.get("kg", "none") == "none" or config.get("kg_graph") != "accumulated":
+        return None
+    return ck, path
+
+
+def gcn_node_features(ck: dict, where="checkpoint") -> tuple[torch.Tensor, torch.Tensor]:
+    """The third GCN layer's node features H (125, d) of a KG checkpoint over its accumulated
+    co-visibility graph, and that graph's 0/1 adjacency (125, 125)."""
+    from . import models  # lazily, as above
+
+    try:
+        net = models.make_model(models.ModelConfig(**ck["model_config"]))
+        net.load_state_dict(ck["model"])
+        covis = models.CoVisibility()
+        covis.load_state_dict(ck["covis"])
+    except (RuntimeError, KeyError, TypeError, ValueError) as e:
+        raise RecordError(f"{where} does not fit its model ({models.first_line(e)})") from e
+    net.eval()
+    adjacency = covis.adjacency()
+    with torch.no_grad():
+        h = net.kg.node_features(models.normalized_adjacency(adjacency))
+    return h.float(), adjacency
+
+
+def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, progress=print) -> list[Path]:
+    """The paper's figures as PNGs in out_dir from rows (Table I row name, training run dir or None,
+    evaluation run dir):
+      * collisions_unseen.png  mean collisions per episode in unseen kitchens (bars) and the rate of
+                               episodes whose last view shows the target (line), per row that has
+                               unseen-kitchen episodes;
+      * tsne_gcn.png           a t-SNE (seed) of the third GCN layer's node features of the last row
+                               trained with an accumulated knowledge graph, the object types that have
+                               a co-visibility edge, each labelled;
+      * training_curves.png    validation SR (the training episodes' SR for a run without validation)
+                               and training_reward.png mean reward per frame, vs frames, per trained row.
+    A figure without data is skipped with a note to `progress`. Returns the paths written."""
+    from .kitchens import object_types  # a data file read; nothing heavy
+
+    out_dir = Path(out_dir)
+    # read everything first: bad input fails before any figure is (re)written
+    unseen, metrics, trained = [], {}, []
+    for name, train_dir, eval_dir in rows:
+        stats = unseen_kitchen_stats(read_episodes(eval_dir), f"{eval_dir}")
+        if stats is not None:
+            unseen.append((name, *stats))
+        if train_dir:
+            train_dir = _run_dir(train_dir, "training")
+            metrics[name] = read_metrics(train_dir / "metrics.csv")
+            trained.append((name, train_dir))
+    written = []
+
+    if unseen:
+        written.append(
+            bar_line_figure(
+                [n for n, _, _ in unseen],
+                [c for _, c, _ in unseen],
+                [s for _, _, s in unseen],
+                out_dir / "collisions_unseen.png",
+                "Unseen kitchens: collisions per episode and last view showing the target",
+                "collisions per episode",
+                "last view shows target (%)",
+            )
+        )
+    else:
+        progress("figures: no row has unseen-kitchen episodes; collisions_unseen.png skipped")
+
+    kg = None
+    for name, train_dir in reversed(trained):  # the last KG row: +KG+Attention in Table I
+        found = _kg_checkpoint(train_dir)
+        if found is not None:
+            kg = (name, *found)
+            break
+    if kg is None:
+        progress("figures: no row trained a knowledge graph; tsne_gcn.png skipped")
+    else:
+        name, ck, path = kg
+        h, adjacency = gcn_node_features(ck, str(path))
+        keep = (adjacency.sum(1) > 0).nonzero().squeeze(1)
+        if len(keep) < 3:  # no co-visibility yet: every type
+            keep = torch.arange(len(h))
+        types = object_types()
+        y = tsne(h[keep], seed=seed)
+        written.append(
+            scatter_figure(
+                y,
+                [types[i] for i in keep.tolist()],
+                out_dir / "tsne_gcn.png",
+                f"t-SNE of the third GCN layer's node features: {name}, {len(keep)} object types "
+                f"({int(ck['frames']):,} frames)",
+                size=TSNE_SIZE,
+            )
+        )
+
+    # validation SR where the run measured it (the checkpoint selection's number), else training SR
+    success, reward, validated = {}, {}, 0
+    for name, series in metrics.items():
+        xs, ys = series.get("val_sr", ([], []))
+        if xs:
+            success[name] = (xs, ys)
+            validated += 1
+        elif series.get("success_rate", ([], []))[0]:
+            success[f"{name} (training episodes)"] = series["success_rate"]
+        if series.get("mean_reward", ([], []))[0]:
+            reward[name] = series["mean_reward"]
+    # a run that never succeeded draws its line on the x axis, under the others: the legend says so
+    success = {(f"{n} (0 throughout)" if not any(ys) else n): (xs, ys) for n, (xs, ys) in success.items()}
+    success_title = "Validation success rate during training" if validated else "Success rate during training"
+    for curves, file, title, ylabel, y_include in (
+        (success, "training_curves.png", success_title, "success rate (%)", (0,)),
+        (reward, "training_reward.png", "Mean reward per frame during training", "mean reward per frame", ()),
+    ):
+        if curves:
+            written.append(
+                curves_figure(
+                    curves, out_dir / file, title, "frames", ylabel, x_include=(0,), y_include=y_include
+                )
+            )
+        else:
+            progress(f"figures: no training run logged {ylabel}; {file} skipped")
+    return written
+
+
+def figures_of_table(
+    preset: str = "quick", runs_dir="runs", out_dir="docs/figures", spec_path=None, progress=print
+) -> list[Path]:
+    """The figures of a Table I preset's runs (run_table: finished runs are only reloaded, missing
+    ones are trained and evaluated first), from each row's first seed."""
+    from . import table  # lazily: the table stage imports the trainer
+
+    spec = table.load_spec(spec_path) if spec_path else table.load_spec()
+    result = table.run_table(spec, preset, runs_dir, progress)
+    rows = [(r.row.name, r.train_runs[0] or None, r.eval_runs[0]) for r in result.rows]
+    return figures(rows, out_dir, progress=progress)

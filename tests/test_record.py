@@ -1,6 +1,7 @@
 """The record stage: episodes and training curves written to .rrd and read back with rerun's own reader,
 the viewer command, exact t-SNE, and the OpenCV figures."""
 
+import json
 import subprocess
 import sys
 import textwrap
@@ -244,3 +245,123 @@ def test_recording_costs_nothing_when_off():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False"]
+
+
+def _episode(column: str, collisions: int, shown: bool, kitchen: str = "FloorPlan26") -> dict:
+    return {
+        "kitchen": kitchen,
+        "target": "Apple|+00.00|+01.00|+00.00",
+        "kind": "static",
+        "column": column,
+        "start": 1,
+        "max_steps": 1000,
+        "success": shown,
+        "path_length": 12,
+        "shortest_path": 10,
+        "collisions": collisions,
+        "last_view_shows_target": shown,
+        "episode_length": 13,
+    }
+
+
+def _eval_run(directory, episodes: list[dict]):
+    (directory / "episodes").mkdir(parents=True)
+    by_kitchen: dict[str, list[str]] = {}
+    for e in episodes:
+        by_kitchen.setdefault(e["kitchen"], []).append(json.dumps(e))
+    for kitchen, lines in by_kitchen.items():
+        (directory / "episodes" / f"{kitchen}.jsonl").write_text("\n".join(lines) + "\n")
+    return directory
+
+
+def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
+    from kgnavbench.train import train_method
+
+    seen = [_episode("seen_seen", 9, False, "FloorPlan1")]
+    outcomes = ((4, False), (2, True), (6, False), (0, False))  # (collisions, last view shows target)
+    walk_episodes = seen + [_episode("unseen_kitchens", c, s) for c, s in outcomes]
+    walk = _eval_run(tmp_path / "eval" / "walk", walk_episodes)
+    ours = _eval_run(
+        tmp_path / "eval" / "ours",
+        seen + [_episode("unseen_kitchens", c, s, "FloorPlan27") for c, s in ((1, True), (0, True))],
+    )
+    ff = _eval_run(tmp_path / "eval" / "ff", seen)  # no unseen kitchens: no bar
+    assert record.unseen_kitchen_stats(record.read_episodes(walk)) == (3.0, 25.0)
+    assert record.unseen_kitchen_stats(record.read_episodes(ours)) == (0.5, 100.0)
+    assert record.unseen_kitchen_stats(record.read_episodes(ff)) is None
+
+    options = {
+        "agents_per_kitchen": "2",
+        "n_steps": "5",
+        "hidden": "16",
+        "lstm": "16",
+        "gcn": "16",
+        "log_every": "200",
+        "val_every": "200",
+        "val_kitchens": "1",
+        "val_episodes": "1",
+        "threads": "1",
+    }
+    run = train_method(
+        "kg_attention",
+        options,
+        frames=200,
+        kitchens=("FloorPlan1",),
+        runs_dir=tmp_path,
+        progress=lambda line: None,
+    )
+    rows = [
+        ("Random walk", None, str(walk)),
+        ("FF A3C", None, str(ff)),
+        ("+KG+Attention", str(run), str(ours)),
+    ]
+    notes = []
+    paths = record.figures(rows, tmp_path / "figures", progress=notes.append)
+    names = [p.name for p in paths]
+    assert names == ["collisions_unseen.png", "tsne_gcn.png", "training_curves.png", "training_reward.png"]
+    assert not notes
+    for p in paths:
+        assert _is_figure(p, record.TSNE_SIZE if p.name == "tsne_gcn.png" else record.FIGURE_SIZE), p
+
+    # the GCN features the t-SNE embeds: the checkpoint's network over its own co-visibility graph
+    h, adjacency = record.gcn_node_features(record._kg_checkpoint(run)[0])
+    assert h.shape == (125, 16) and adjacency.sum() > 0
+
+    # without a KG run or a training run: the figures that need them are skipped, with a note
+    notes.clear()
+    paths = record.figures(rows[:2], tmp_path / "fewer", progress=notes.append)
+    assert [p.name for p in paths] == ["collisions_unseen.png"]
+    assert len(notes) == 3 and "tsne_gcn.png skipped" in notes[0]
+
+    with pytest.raises(RecordError, match="no such evaluation run directory"):
+        record.figures([("LSTM A3C", None, str(tmp_path / "missing"))], tmp_path / "x")
+    with pytest.raises(RecordError, match="no such training run directory"):
+        record.figures([("LSTM A3C", str(tmp_path / "gone"), str(ours))], tmp_path / "x")
+    (ff / "episodes" / "FloorPlan1.jsonl").write_text("{not json\n")
+    with pytest.raises(RecordError, match="line 1"):
+        record.figures(rows, tmp_path / "x")
+    assert not (tmp_path / "x").exists()  # bad input fails before any figure is written
+
+
+def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from kgnavbench import table
+
+    spec = table.load_spec()
+    runs = {}
+    for name in ("walk", "ours"):
+        runs[name] = _eval_run(tmp_path / name, [_episode("unseen_kitchens", 2, name == "ours")])
+    result = SimpleNamespace(
+        rows=[
+            SimpleNamespace(row=spec.rows[0], train_runs=[""], eval_runs=[str(runs["walk"]), "seed 1"]),
+            SimpleNamespace(row=spec.rows[-1], train_runs=[""], eval_runs=[str(runs["ours"])]),
+        ]
+    )
+    calls = []
+    monkeypatch.setattr(table, "run_table", lambda *args: calls.append(args) or result)
+    notes = []
+    paths = record.figures_of_table("smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append)
+    assert [p.name for p in paths] == ["collisions_unseen.png"]
+    assert calls == [(spec, "smoke", tmp_path / "runs", notes.append)]
+    assert len(notes) == 3  # no training runs: the t-SNE and both curves are skipped
