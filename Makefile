@@ -15,8 +15,8 @@ $(STAMP): pyproject.toml
 ## table: the main job. Regenerates the paper's Table I from tables/table1.toml: for each of the nine
 ## rows, train (unless a finished run with the same config exists; an unfinished one resumes), take
 ## the checkpoint with the best validation SR, evaluate it on the fixed episodes, then write
-## tables/table1.{md,csv,tex} and print the table. PRESET=quick (default, this laptop in about half an
-## hour), PRESET=paper (the paper's budget), PRESET=smoke (seconds). Killed and re-run, it continues.
+## tables/table1.{md,csv,tex} and print the table. PRESET=quick (default, this laptop in about 11
+## minutes), PRESET=paper (the paper's budget), PRESET=smoke (seconds). Killed and re-run, it continues.
 PRESET ?= quick
 table: $(STAMP)
 	$(BIN)/kgnavbench prepare
