@@ -185,6 +185,7 @@ def test_tse_subtrajectories_end_at_their_subtarget_with_a_successful_stop(tmp_p
         n = int(seq.mask[i].sum())
         states, actions = seq.states[i, :n], seq.actions[i, :n]
         assert actions[-1] == STOP and states[-1] == seq.goal[i]
+        assert STOP not in actions[:-1].tolist()  # a Stop before would have ended the relabelled episode
         # the states follow from the actions through the state graph
         for t in range(n - 1):
             assert sp.next_state[states[t], actions[t]] == states[t + 1]
