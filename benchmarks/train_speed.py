@@ -2,6 +2,7 @@
 
     python benchmarks/train_speed.py                      # every row of Table I's learned methods
     python benchmarks/train_speed.py --updates 5 --kitchens FloorPlan1
+    python benchmarks/train_speed.py --pixels --updates 3 --kitchens FloorPlan1   # the GPU path
 
 For each method and options (default sizes: 64 agents in each of the 20 training kitchens, rollouts of
 20 steps, LSTM 256, bf16 autocast) it builds the trainer exactly as `kgnavbench train` does, runs one
@@ -48,12 +49,16 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=10)
     parser.add_argument("--kitchens", default="", help="training kitchens (default: all 20)")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--pixels", action="store_true", help="only lstm_a3c end to end from the views (pixels=true)"
+    )
     args = parser.parse_args()
+    rows = [("lstm_a3c", {"pixels": "true"})] if args.pixels else ROWS
     torch.set_num_threads(args.threads)
     kitchens = train.training_kitchens(tuple(k for k in args.kitchens.split(",") if k))
     print(f"{len(kitchens)} training kitchens, {args.threads} threads, torch {torch.__version__}")
     with tempfile.TemporaryDirectory() as tmp:
-        for method, options in ROWS:
+        for method, options in rows:
             trainer, config = trainer_of(method, options, kitchens, Path(tmp))
             trainer.update()  # warm-up: first-call allocations
             start, frames = time.perf_counter(), trainer.frames
@@ -66,6 +71,8 @@ def main() -> None:
                 f"train  {label:44s} {trainer.nav.n:5d} agents  {rate:9,.0f} frames/s  "
                 f"({args.updates} updates in {seconds:.1f} s; il={config.il} tse={config.tse})"
             )
+        if args.pixels:
+            return
         # inference: validation episodes (cap 1000) with the last trainer's network, as `eval --run` does
         trainer.opts.val_episodes = 1
         trainer.validate()  # loads the validation kitchens

@@ -438,6 +438,10 @@ def _positive(text: str) -> int:
     return n
 
 
+def _runs_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+
+
 def _frames(text: str) -> int:
     """A frame count: an integer, underscores or a k/M suffix allowed (2M, 500k, 2_000_000)."""
     scale = {"k": 1_000, "m": 1_000_000}.get(text[-1:].lower(), 1)
@@ -568,7 +572,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a plugin option (repeatable)")
     p.add_argument("--seed", type=int, default=0, help="seed of the policy (default 0)")
-    p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    _runs_option(p)
     p.add_argument(
         "--run",
         type=Path,
@@ -597,7 +601,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=_frames, default=10_000_000, help="frames (agent steps) to train")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")
-    p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    _runs_option(p)
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="record the training curves with rerun")
     p.set_defaults(func=cmd_train)
 
@@ -610,7 +614,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--preset", default="quick", help="the table preset whose runs to draw (default quick)")
     p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
-    p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    _runs_option(p)
     p.add_argument("--out", type=Path, default=Path("docs/figures"), help="output folder (docs/figures)")
     p.set_defaults(func=cmd_figures)
 
@@ -632,7 +636,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--preset", default="quick", help="smoke | quick (default) | paper, as in the spec")
     p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
-    p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    _runs_option(p)
     p.add_argument("--out", type=Path, help="where the tables go (default: the spec's folder, tables/)")
     p.set_defaults(func=cmd_table)
     return parser

@@ -51,10 +51,8 @@ from pettingzoo import ParallelEnv
 from .kitchens import object_types
 from .render import top_down_map
 from .tasks import (
-    MIN_START_DISTANCE,
     MOVES,
     OPEN,
-    START_PITCH,
     STOP,
     VIEW_SIZE,
     KitchenTasks,
@@ -192,12 +190,7 @@ class NavigationEnv(ParallelEnv):
         """(target row, start state, max steps) for training: a seeded target and a start at pitch 0
         at least MIN_START_DISTANCE actions from its destination, as in the fixed episodes."""
         row = self.training_targets[self.np_random.integers(len(self.training_targets))]
-        d = self.tasks.distances(self.tasks.targets[row], "destination")
-        closed = np.arange(self.graph.n_states) < self.graph.n_closed
-        ok = closed & (self.graph.pitch == START_PITCH) & ~self._tables.visible[row]
-        far = np.flatnonzero(ok & (d >= MIN_START_DISTANCE))
-        if len(far) == 0:
-            far = np.flatnonzero(ok & (d == d[ok].max()))
+        far = self.tasks.training_starts(self.tasks.targets[row])
         return row, int(far[self.np_random.integers(len(far))]), self.max_steps
 
     def _parse_episode(self, episode) -> tuple[int, int, int]:

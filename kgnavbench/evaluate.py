@@ -26,7 +26,6 @@ import dataclasses
 import hashlib
 import json
 import math
-import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -35,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .env import SUCCESS_RULES, parallel_env
-from .kitchens import KITCHEN_NAMES, atomic_write, check_name
+from .kitchens import KITCHEN_NAMES, atomic_write, check_name, git_revision
 from .plugins import Plugin, PluginError, PolicySpec, guarded, load_plugin
 from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks
 from .world import ACTIONS
@@ -359,28 +358,6 @@ def format_summary(summary: dict[tuple[str, str], Metrics], title: str) -> str:
 
 # ------------------------------------------------------------------------------------------------
 # Runs on disk: config with git revision, per-kitchen results (resumable), summary
-
-
-def git_revision() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=Path(__file__).parent,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-        rev = out.stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=Path(__file__).parent,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        ).stdout.strip()
-        return (rev + ("-dirty" if dirty else "")) if rev else "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 # Result rows as JSON lines: the types every field must have (a file that breaks them is not summed).

@@ -18,6 +18,7 @@ import gzip
 import json
 import math
 import os
+import subprocess
 import tempfile
 from dataclasses import dataclass
 from functools import cache, lru_cache
@@ -528,6 +529,24 @@ def compile_all(thor_data: Path | str = DEFAULT_THOR_DATA, out_dir: Path = KITCH
     atomic_write(out_dir.parent / "object_types.json", json.dumps(types, indent=0).encode())
     load_kitchen.cache_clear()
     return written
+
+
+def git_revision() -> str:
+    """The checkout's commit, saved in every run directory: HEAD's, with '-dirty' when tracked files
+    differ from it; 'unknown' outside a checkout."""
+
+    def git(*args: str) -> str:
+        out = subprocess.run(
+            ["git", *args], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=10
+        )
+        return out.stdout.strip()
+
+    try:
+        rev = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (rev + ("-dirty" if dirty else "")) if rev else "unknown"
 
 
 if __name__ == "__main__":

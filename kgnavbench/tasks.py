@@ -389,11 +389,24 @@ def goal_mask(n_states: int, goal_states) -> np.ndarray:
     return mask
 
 
+def nearer_actions(dist: np.ndarray, dist_after: np.ndarray) -> np.ndarray:
+    """(N, A) bool: the actions of states at BFS distance `dist` (N,) that lead one step nearer the goal
+    (`dist_after` (N, A): the distance after each action); none on a goal or where it cannot be
+    reached."""
+    return (dist_after == (dist - 1)[:, None]) & (dist > 0)[:, None]
+
+
+def optimal_action_mask(dist: np.ndarray, dist_after: np.ndarray) -> np.ndarray:
+    """Every BFS-optimal action (N, 10): Stop on a goal state, else each action one step nearer."""
+    optimal = nearer_actions(dist, dist_after)
+    optimal[dist == 0, STOP] = True
+    return optimal
+
+
 def expert_actions(next_state: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """The BFS-optimal action per state: Stop on a goal state, else the first action (paper order) whose
     next state is one step nearer; -1 where the goal cannot be reached."""
-    nearer = dist[next_state] == (dist - 1)[:, None]
-    nearer[dist <= 0] = False
+    nearer = nearer_actions(dist, dist[next_state])
     best = np.where(nearer.any(1), nearer.argmax(1), -1)
     best[dist == 0] = STOP
     return best
@@ -636,6 +649,20 @@ class KitchenTasks:
         if key not in self._dist:
             goals = target.goal_states if success_rule == "visible" else (target.destination,)
             self._dist[key] = bfs_distances(self.graph.next_state, goal_mask(self.graph.n_states, goals))
+        return self._dist[key]
+
+    def training_starts(self, target: TaskTarget) -> np.ndarray:
+        """The states a training episode of the target may start from (the env's and the trainer's
+        draws): closed, at pitch 0, the target not in view, at least MIN_START_DISTANCE actions from
+        its destination; where no state is that far, the farthest such states. Computed once."""
+        key = (target.object_id, "starts")
+        if key not in self._dist:
+            g = self.graph
+            d = self.distances(target, "destination")
+            closed = np.arange(g.n_states) < g.n_closed
+            ok = closed & (g.pitch == START_PITCH) & ~goal_mask(g.n_states, target.goal_states)
+            far = np.flatnonzero(ok & (d >= MIN_START_DISTANCE))
+            self._dist[key] = far if len(far) else np.flatnonzero(ok & (d == d[ok].max()))
         return self._dist[key]
 
 

@@ -37,7 +37,6 @@ import io
 import json
 import math
 import random
-import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -49,16 +48,15 @@ import torch.nn.functional as F
 
 from . import models
 from .env import ARRIVAL_REWARD, STEP_REWARD, SUCCESS_REWARD, SUCCESS_RULES, TRAINING_MAX_STEPS
-from .kitchens import KITCHEN_NAMES, atomic_write, check_name, object_types
+from .kitchens import KITCHEN_NAMES, atomic_write, check_name, git_revision, object_types
 from .plugins import load_plugin
 from .tasks import (
-    MIN_START_DISTANCE,
     MOVES,
-    START_PITCH,
     STOP,
     KitchenTasks,
     load_task_file,
     load_tasks,
+    optimal_action_mask,
     shortest_trajectory,
     walk_back_trajectory,
 )
@@ -66,7 +64,6 @@ from .tasks import (
 CHECKPOINT_FORMAT = 1
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
 EXPERTS = ("walk_back", "shortest", "on_policy")
-KG_GRAPHS = ("accumulated", "per_step")
 METRICS = (
     "frames",
     "seconds",
@@ -179,23 +176,6 @@ class Run:
     seed: int
     kitchens: tuple[str, ...]  # training kitchens (their seen targets only)
     progress: Callable[[str], None] = print
-
-
-def git_revision() -> str:
-    """HEAD's commit, '-dirty' when tracked files differ from it; 'unknown' outside a checkout."""
-
-    def git(*args: str) -> str:
-        out = subprocess.run(
-            ["git", *args], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=10
-        )
-        return out.stdout.strip()
-
-    try:
-        rev = git("rev-parse", "HEAD")
-        dirty = git("status", "--porcelain", "--untracked-files=no")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return (rev + ("-dirty" if dirty else "")) if rev else "unknown"
 
 
 def training_kitchens(kitchens=()) -> tuple[str, ...]:
@@ -352,12 +332,7 @@ def build_space(
         else:
             goal[r, off + t.destination] = True
         dist[r, off : off + m] = kt.distances(t, success_rule)
-        # training starts, exactly as env._draw_episode draws them
-        d = kt.distances(t, "destination")
-        ok = (np.arange(m) < g.n_closed) & (g.pitch == START_PITCH) & ~visible[r, off : off + m]
-        far = np.flatnonzero(ok & (d >= MIN_START_DISTANCE))
-        if len(far) == 0:
-            far = np.flatnonzero(ok & (d == d[ok].max()))
+        far = kt.training_starts(t)  # the env draws its training starts from the same states
         starts.append(far + off)
         start_ptr.append(start_ptr[-1] + len(far))
         fixed.append(tuple(int(s) + off for s in t.starts))
@@ -519,10 +494,7 @@ def optimal_actions(
     them, not one: BFS ties are common (a strafe or a turn), and a single tie-broken label asks the
     network to learn the tie-break."""
     now = space.dist[targets, states]
-    after = space.dist[targets[:, None], space.next_state[states]]
-    optimal = (after == (now - 1)[:, None]) & (now > 0)[:, None]
-    optimal[now == 0, STOP] = True
-    return optimal, now >= 0
+    return optimal_action_mask(now, space.dist[targets[:, None], space.next_state[states]]), now >= 0
 
 
 def optimal_action_loss(log_p: torch.Tensor, optimal: np.ndarray, known: np.ndarray) -> torch.Tensor:
@@ -1122,8 +1094,6 @@ def _csv_text(rows: list[dict]) -> str:
 def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl: bool = True) -> Path:
     """Train (or resume) a run: A2C (rl=True) with IL and TSE as the options say, or IL alone."""
     options.check()
-    if model_config.kg_graph not in KG_GRAPHS:
-        raise TrainError(f"kg_graph must be one of {KG_GRAPHS}, not {model_config.kg_graph!r}")
     torch.set_num_threads(options.threads)
     progress = run.progress
     trainer = Trainer(run, options, model_config, rl)
