@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 THOR   ?= ../shared/thor_data
 
-.PHONY: table baselines figures test lint kitchens tasks encoder bench docs clean
+.PHONY: table baselines figures screenshot test lint kitchens tasks encoder bench docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -50,6 +50,17 @@ tasks: $(STAMP)
 ## figures: the paper's figures from the table's runs into docs/figures (runs what is missing first)
 figures: $(STAMP)
 	$(BIN)/kgnavbench figures --preset $(PRESET)
+
+## screenshot: the rerun viewer on a recording, headless (rerun's own --screenshot-to), into
+## docs/figures/rerun_viewer.png. RRD=FILE.rrd (default: two oracle episodes, recorded if missing).
+## The viewer may still be loading when it shoots: look at the picture, and run it again if so.
+RRD ?= runs/oracle_episodes.rrd
+screenshot: $(STAMP)
+	test -f $(RRD) || $(BIN)/kgnavbench eval --method oracle --kitchens FloorPlan1 --episodes 1 --record $(RRD)
+	RUST_LOG=error $(BIN)/rerun $(RRD) --headless --screenshot-to runs/rerun_viewer.png \
+	    --window-size 1600x1000 --hide-welcome-screen
+	$(BIN)/python -c "import cv2; cv2.imwrite('docs/figures/rerun_viewer.png', \
+	    cv2.resize(cv2.imread('runs/rerun_viewer.png'), (1600, 1000), interpolation=cv2.INTER_AREA))"
 
 ## encoder: retrain the committed view encoder kgnavbench/data/encoder.pt (deterministic, ~3 min)
 encoder: $(STAMP)

@@ -174,24 +174,33 @@ def test_novel_subtargets_fire_once_per_new_type_up_to_the_limit():
 
 def test_tse_subtrajectories_end_at_their_subtarget_with_a_successful_stop(tmp_path, floorplan1_tasks):
     trainer = train.Trainer(tiny_run(tmp_path), tiny_options(tse=True), models.ModelConfig(), True)
-    for _ in range(8):
-        trainer.rollout(None)
-        if trainer.candidates:
-            break
-    assert trainer.candidates, "no sub-target in 8 rollouts of 4 agents"
-    seq = trainer.subtrajectories()
     sp = trainer.space
-    for i in range(len(seq.goal)):
-        n = int(seq.mask[i].sum())
-        states, actions = seq.states[i, :n], seq.actions[i, :n]
-        assert actions[-1] == STOP and states[-1] == seq.goal[i]
-        assert STOP not in actions[:-1].tolist()  # a Stop before would have ended the relabelled episode
-        # the states follow from the actions through the state graph
-        for t in range(n - 1):
-            assert sp.next_state[states[t], actions[t]] == states[t + 1]
-        assert seq.rewards[i, n - 1] == pytest.approx(
-            9.99 if (states[:-1] != seq.goal[i]).all() else 10 - 0.01
-        )
+    successes = failures = 0
+    for _ in range(40):  # rollouts until both kinds of relabelled episode were seen
+        trainer.rollout(None)
+        seq = trainer.subtrajectories()
+        if seq is None:
+            continue
+        for i in range(len(seq.goal)):
+            n = int(seq.mask[i].sum())
+            states, actions = seq.states[i, :n], seq.actions[i, :n]
+            if states[-1] != seq.goal[i]:  # a wrong Stop in the window: the relabelled task's failure
+                assert n == 1 and actions.tolist() == [STOP] and seq.rewards[i, 0] == pytest.approx(-0.01)
+                failures += 1
+                continue
+            assert actions[-1] == STOP
+            assert STOP not in actions[:-1].tolist()  # a Stop before would have ended the relabelled episode
+            # the states follow from the actions through the state graph
+            for t in range(n - 1):
+                assert sp.next_state[states[t], actions[t]] == states[t + 1]
+            assert seq.rewards[i, n - 1] == pytest.approx(
+                9.99 if (states[:-1] != seq.goal[i]).all() else 10 - 0.01
+            )
+            successes += 1
+        if successes and failures:
+            break
+    # untrained agents Stop about once in ten steps, so some window held a wrong Stop
+    assert successes and failures, (successes, failures)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -404,3 +413,15 @@ def test_train_then_eval_every_learned_plugin(capsys, tmp_path, floorplan1_tasks
         assert "recorded 1 episodes" in capsys.readouterr().out and rrd.stat().st_size > 1000
         assert main(["train", *_train(tmp_path, method, 400)[4:], "--record", str(tmp_path / "t.rrd")]) == 0
         assert "recorded" in capsys.readouterr().out and (tmp_path / "t.rrd").exists()
+
+
+def test_episode_cap_truncates_training_episodes(tmp_path, floorplan1_tasks):
+    trainer = train.Trainer(
+        tiny_run(tmp_path), tiny_options(episode_cap=3, n_steps=7), models.ModelConfig(), True
+    )
+    trainer.rollout(None)
+    # every agent is at most 3 actions into its current episode, and its first ended by the cap or success
+    assert (trainer.nav.steps <= 3).all()
+    assert trainer.stats["episodes"] >= trainer.nav.n
+    with pytest.raises(train.TrainError, match="episode_cap"):
+        tiny_options(episode_cap=0)
