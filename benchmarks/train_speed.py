@@ -50,10 +50,18 @@ def main() -> None:
     parser.add_argument("--kitchens", default="", help="training kitchens (default: all 20)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument(
+        "--agents", type=int, default=0, help="agents per training kitchen (default: the option's default)"
+    )
+    parser.add_argument("--methods", default="", help="only these methods, e.g. kg_attention,lstm_a3c")
+    parser.add_argument(
         "--pixels", action="store_true", help="only lstm_a3c end to end from the views (pixels=true)"
     )
     args = parser.parse_args()
     rows = [("lstm_a3c", {"pixels": "true"})] if args.pixels else ROWS
+    if args.methods:
+        rows = [(m, o) for m, o in rows if m in args.methods.split(",")]
+    if args.agents:
+        rows = [(m, {**o, "agents_per_kitchen": str(args.agents)}) for m, o in rows]
     torch.set_num_threads(args.threads)
     kitchens = train.training_kitchens(tuple(k for k in args.kitchens.split(",") if k))
     print(f"{len(kitchens)} training kitchens, {args.threads} threads, torch {torch.__version__}")
@@ -66,7 +74,8 @@ def main() -> None:
                 trainer.update()
             seconds = time.perf_counter() - start
             rate = (trainer.frames - frames) / seconds
-            label = method + (" " + " ".join(f"{k}={v}" for k, v in options.items()) if options else "")
+            shown = {k: v for k, v in options.items() if k != "agents_per_kitchen"}
+            label = method + (" " + " ".join(f"{k}={v}" for k, v in shown.items()) if shown else "")
             print(
                 f"train  {label:44s} {trainer.nav.n:5d} agents  {rate:9,.0f} frames/s  "
                 f"({args.updates} updates in {seconds:.1f} s; il={config.il} tse={config.tse})"

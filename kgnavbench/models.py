@@ -577,6 +577,21 @@ class CoVisibility:
         self.counts = counts.detach().to(torch.float64).clone()
 
 
+@dataclass
+class GraphTerms:
+    """What the accumulated graph gives every sample alike: the GCN's node features H (125, d), Q's
+    terms base (d,), D1 and D2 (125, d) (`KnowledgeGraph.q_terms`) and, with attention, the node
+    scores of the three kinds of R_z node (in the view only, in the target only, in both; (125,)
+    each). They depend on the weights and the adjacency only, so a rollout computes them once per
+    update and every step (and the backward pass, through autograd) shares them."""
+
+    node_features: Tensor
+    base: Tensor
+    d1: Tensor
+    d2: Tensor
+    scores: tuple[Tensor, Tensor, Tensor] | None
+
+
 class KnowledgeGraph(nn.Module):
     """GCN over the 125 object types, the spatial features Q, and their mean or attention pool over
     R_z (module docstring: the closed form that never builds (B, 125, d) tensors)."""
@@ -614,11 +629,24 @@ class KnowledgeGraph(nn.Module):
     def scores(self, q: Tensor) -> Tensor:
         return self.score(F.relu(self.score_hidden(q))).squeeze(-1)
 
+    def graph_terms(self, adjacency: Tensor) -> GraphTerms:
+        """The accumulated graph's per-update terms (GraphTerms) from its (125, 125) adjacency."""
+        if self.per_step:
+            raise ModelError("kg_graph='per_step' has no per-update graph terms")
+        node_features = self.node_features(normalized_adjacency(adjacency.to(self.w0.dtype)))
+        base, d1, d2 = self.q_terms(node_features)  # d1, d2: (125, d)
+        scores = None
+        if self.attention:
+            q = torch.stack([base + d1, base + d2, base + d1 + d2])  # (3, 125, d): t, g, both
+            scores = tuple(self.scores(q).unbind(0))
+        return GraphTerms(node_features, base, d1, d2, scores)
+
     def forward(
-        self, r_t: Tensor, r_g: Tensor, adjacency: Tensor | None
+        self, r_t: Tensor, r_g: Tensor, adjacency: Tensor | GraphTerms | None
     ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        """r_t, r_g: (B, 125) 0/1 float. Returns the pooled Q (B, d), attention (B, 125) or None, and
-        the node features H (125, d) of the accumulated graph (None per step)."""
+        """r_t, r_g: (B, 125) 0/1 float; adjacency: the accumulated graph's (125, 125) adjacency or
+        its `graph_terms`. Returns the pooled Q (B, d), attention (B, 125) or None, and the node
+        features H (125, d) of the accumulated graph (None per step)."""
         r_z = torch.maximum(r_t, r_g)
         both, t_only, g_only = r_t * r_g, r_t * (1 - r_g), (1 - r_t) * r_g
         if self.per_step:
@@ -628,18 +656,19 @@ class KnowledgeGraph(nn.Module):
             u = F.relu(F.relu(u @ self.w1) @ self.w2)
             base, d1, d2 = self.q_terms(u)  # d1, d2: (B, d), the same for every R_z node of a sample
             node_features = None
+            if self.attention:
+                q = torch.stack([base + d1, base + d2, base + d1 + d2])  # (3, B, d): t, g, both
+                s_t, s_g, s_both = (s[:, None] for s in self.scores(q).unbind(0))
         else:
             if adjacency is None:
                 raise ModelError(
                     "kg_graph='accumulated' needs the (125, 125) adjacency of the co-visibility graph"
                 )
-            node_features = self.node_features(normalized_adjacency(adjacency.to(self.w0.dtype)))
-            base, d1, d2 = self.q_terms(node_features)  # d1, d2: (125, d)
+            terms = adjacency if isinstance(adjacency, GraphTerms) else self.graph_terms(adjacency)
+            node_features, base, d1, d2 = terms.node_features, terms.base, terms.d1, terms.d2
+            if self.attention:
+                s_t, s_g, s_both = terms.scores
         if self.attention:
-            q = torch.stack([base + d1, base + d2, base + d1 + d2])  # (3, 125 or B, d): t, g, both
-            s_t, s_g, s_both = self.scores(q).unbind(0)
-            if self.per_step:
-                s_t, s_g, s_both = s_t[:, None], s_g[:, None], s_both[:, None]
             weights = masked_softmax(t_only * s_t + g_only * s_g + both * s_both, r_z)
             attention = weights
         else:
@@ -696,6 +725,13 @@ class ActorCritic(nn.Module):
             self.scene_policy = nn.Parameter(torch.randn(s, h, n_actions) * 0.01)
             self.scene_policy_bias = nn.Parameter(torch.zeros(s, n_actions))
             self.scene_value, self.scene_value_bias = uniform(s, h, 1, fan_in=h), uniform(s, 1, fan_in=h)
+
+    def graph_terms(self, adjacency: Tensor | None) -> GraphTerms | Tensor | None:
+        """What forward's `adjacency` may be instead of the adjacency: the accumulated graph's
+        per-update terms, computed once (`GraphTerms`); the adjacency itself where there are none."""
+        if self.kg is None or self.kg.per_step or adjacency is None:
+            return adjacency
+        return self.kg.graph_terms(adjacency)
 
     def initial_state(self, batch: int, device=None) -> tuple[Tensor, Tensor] | None:
         if self.cfg.arch != "lstm":

@@ -629,6 +629,15 @@ class Model:
             return None
         return torch.as_tensor(np.asarray(self.covis.adjacency()), dtype=torch.float32)
 
+    def graph(self):
+        """The knowledge graph's per-update terms (models.GraphTerms), computed once for all the steps
+        that share these weights and this adjacency; None without an accumulated graph."""
+        adjacency = self.adjacency()
+        if adjacency is None:
+            return None
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+            return self.net.graph_terms(adjacency)
+
     def __call__(self, space: StateSpace, states, goals, hidden, adjacency, scene=None, history=None):
         """One forward pass: agents in `states` (or their frame `history` (B, H) for FF) toward the
         target images of `goals` (states)."""
@@ -719,7 +728,7 @@ class Trainer:
     # -- one update ------------------------------------------------------------------------------
     def update(self) -> None:
         """One rollout of every agent (or, IL only, one expert batch) and one gradient step."""
-        adjacency = self.model.adjacency()
+        adjacency = self.model.graph()
         loss = torch.zeros(())
         imitate = self.il and (not self.rl or self.frames < self.opts.il_frames)
         self.nav.stop_ends = self.opts.stop_ends_from is not None and self.frames >= self.opts.stop_ends_from
@@ -1021,10 +1030,10 @@ def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, see
     ff = model.config.arch == "ff"
     history = np.repeat(starts[:, None], model.config.history, 1) if ff else None
     scene = np.zeros(n, np.int64) if scene_of is None else np.asarray(scene_of)[nav.kitchen]
-    adjacency = model.adjacency()
     live = np.ones(n, bool)
     frames = 0
     with torch.no_grad():
+        adjacency = model.graph()
         while live.any():
             idx = np.flatnonzero(live)
             goals = space.destination[nav.target[idx]]
@@ -1220,7 +1229,8 @@ class LearnedPolicy:
         covis = models.CoVisibility()
         covis.load_state_dict(ck["covis"])
         self.model = Model(net, self.config, covis, ck["options"].get("bf16", False))
-        self.adjacency = self.model.adjacency()
+        with torch.no_grad():
+            self.adjacency = self.model.graph()
         self.training_kitchens = list(ck["kitchens"])
         self.success_rule = ck["options"].get("success_rule", "destination")
         self.generator = torch.Generator().manual_seed(seed)

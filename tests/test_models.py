@@ -165,6 +165,35 @@ def test_closed_form_kg_branch_equals_the_literal_equations(kg, graph):
     assert torch.equal(fast[0], torch.zeros_like(fast[0]))  # nothing in view or target: nothing pooled
 
 
+@pytest.mark.parametrize("kg", ["mean", "attention"])
+def test_graph_terms_computed_once_equal_the_per_step_computation(kg):
+    # the trainer computes the accumulated graph's terms once per update and shares them across the
+    # rollout's steps: outputs and gradients must be those of recomputing them at every step
+    torch.manual_seed(0)
+    cfg = ModelConfig(kg=kg)
+    model = make_model(cfg)
+    steps = [inputs(cfg, b=6, seed=s) for s in (1, 2, 3)]
+    adjacency = steps[0]["adjacency"]
+    results = []
+    for shared in (False, True):
+        model.zero_grad()
+        graph = model.graph_terms(adjacency) if shared else adjacency
+        assert isinstance(graph, models.GraphTerms) == shared
+        outs = [model(**{**x, "adjacency": graph}, state=None) for x in steps]
+        loss = sum(logits.square().sum() + value.sum() for logits, value, _, _ in outs)
+        loss.backward()
+        grads = [p.grad.clone() for p in model.kg.parameters()]
+        results.append(([o[0] for o in outs], [o[3]["attention"] for o in outs], grads))
+    (logits_a, att_a, grad_a), (logits_b, att_b, grad_b) = results
+    assert all(torch.equal(a, b) for a, b in zip(logits_a, logits_b))
+    assert all((a is None and b is None) or torch.equal(a, b) for a, b in zip(att_a, att_b))
+    assert all(torch.allclose(a, b, atol=1e-6, rtol=1e-5) for a, b in zip(grad_a, grad_b))
+    # without an accumulated graph there is nothing to share
+    assert make_model(ModelConfig(kg="none")).graph_terms(adjacency) is adjacency
+    per_step = make_model(ModelConfig(kg=kg, kg_graph="per_step"))
+    assert per_step.graph_terms(adjacency) is adjacency
+
+
 @pytest.mark.parametrize("graph", ["accumulated", "per_step"])
 def test_attention_weights_are_zero_outside_the_visible_types(graph):
     cfg = ModelConfig(kg="attention", kg_graph=graph)
