@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 ## table: the main job. Regenerates the paper's Table I from tables/table1.toml: for each of the nine
 ## rows, train (unless a finished run with the same config exists; an unfinished one resumes), take
 ## the checkpoint with the best validation SR, evaluate it on the fixed episodes, then write
-## tables/table1.{md,csv,tex} and print the table. PRESET=quick (default, this laptop in about 11
+## tables/table1.{md,csv,tex} and print the table. PRESET=quick (default, this laptop in about 24
 ## minutes), PRESET=paper (the paper's budget), PRESET=smoke (seconds). Killed and re-run, it continues.
 PRESET ?= quick
 table: $(STAMP)
@@ -51,16 +51,12 @@ tasks: $(STAMP)
 figures: $(STAMP)
 	$(BIN)/kgnavbench figures --preset $(PRESET)
 
-## screenshot: the rerun viewer on a recording, headless (rerun's own --screenshot-to), into
-## docs/figures/rerun_viewer.png. RRD=FILE.rrd (default: two oracle episodes, recorded if missing).
-## The viewer may still be loading when it shoots: look at the picture, and run it again if so.
+## screenshot: the rerun viewer on a recording, headless (rerun's own --screenshot-to, no display),
+## into docs/figures/rerun_viewer.png; RRD=FILE.rrd (default: two oracle episodes, recorded if missing)
 RRD ?= runs/oracle_episodes.rrd
 screenshot: $(STAMP)
 	test -f $(RRD) || $(BIN)/kgnavbench eval --method oracle --kitchens FloorPlan1 --episodes 1 --record $(RRD)
-	RUST_LOG=error $(BIN)/rerun $(RRD) --headless --screenshot-to runs/rerun_viewer.png \
-	    --window-size 1600x1000 --hide-welcome-screen
-	$(BIN)/python -c "import cv2; cv2.imwrite('docs/figures/rerun_viewer.png', \
-	    cv2.resize(cv2.imread('runs/rerun_viewer.png'), (1600, 1000), interpolation=cv2.INTER_AREA))"
+	$(BIN)/python docs/screenshot.py $(RRD) docs/figures/rerun_viewer.png
 
 ## encoder: retrain the committed view encoder kgnavbench/data/encoder.pt (deterministic, ~3 min)
 encoder: $(STAMP)

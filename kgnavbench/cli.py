@@ -9,7 +9,7 @@
     kgnavbench eval --method NAME [--success-rule visible|destination] [--stop-noop]
                     [--split table|train|val|test] [--kitchens A,B] [--episodes N] [--set KEY=VALUE]
                     [--seed S] [--runs DIR] [--run TRAIN_RUN] [--json] [--record FILE.rrd]
-                    [--record-episodes N]
+                    [--record-episodes N] [--record-steps N]
     kgnavbench train --method NAME [--set KEY=VALUE] [--frames N] [--seed S] [--kitchens A,B]
                      [--runs DIR] [--record FILE.rrd]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR]
@@ -338,6 +338,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                 seed=config.seed,
                 stop_ends=config.stop_ends,
                 run=config.run or None,
+                max_steps=args.record_steps,
             )
         except RecordError as e:
             raise UsageError(str(e)) from e
@@ -583,6 +584,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="also record episodes with rerun")
     p.add_argument(
         "--record-episodes", type=_positive, default=2, metavar="N", help="episodes to record (default 2)"
+    )
+    p.add_argument(
+        "--record-steps",
+        type=_frames,
+        metavar="N",
+        help="end each recorded episode after N actions (default: the evaluation's cap)",
     )
     p.set_defaults(func=cmd_eval)
 

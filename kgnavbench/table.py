@@ -311,6 +311,27 @@ def run_row(spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path
     return run_dir, evaluate(config, runs_dir, progress=progress)
 
 
+def _trains(row: Row) -> bool:
+    try:
+        return callable(getattr(load_plugin(row.method).module, "train", None))
+    except PluginError as e:
+        raise TableError(f"row {row.name!r}: {e}") from e
+
+
+def time_left(done: list[tuple[bool, float]], todo: list[bool]) -> float | None:
+    """Seconds left: per kind of row (trained or not), the mean time of the rows of that kind done so
+    far times the rows of that kind to come; None while a kind to come has none done (a random walk's
+    seconds say nothing about a training run's minutes)."""
+    left = 0.0
+    for kind in (True, False):
+        coming = sum(1 for k in todo if k == kind)
+        times = [t for k, t in done if k == kind]
+        if coming and not times:
+            return None
+        left += coming * (sum(times) / len(times) if times else 0.0)
+    return left
+
+
 def run_table(
     spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs", progress=print
 ) -> TableResult:
@@ -323,9 +344,11 @@ def run_table(
     results = []
     jobs = [(row, seed) for row in spec.rows for seed in range(preset.seeds)]
     per_row: dict[str, RowResult] = {}
+    kinds = [_trains(row) for row, _ in jobs]
+    done: list[tuple[bool, float]] = []
     for n, (row, seed) in enumerate(jobs):
-        elapsed = time.perf_counter() - start
-        eta = f", about {elapsed / n * (len(jobs) - n) / 60:.0f} min left" if n else ""
+        left = time_left(done, kinds[n:])
+        eta = f", about {left / 60:.0f} min left" if left is not None else ""
         progress(f"== [{n + 1}/{len(jobs)}] {row.name} (seed {seed}){eta}")
         t0 = time.perf_counter()
         try:
@@ -337,6 +360,7 @@ def run_table(
         result.train_runs.append(str(run_dir) if run_dir else "")
         result.eval_runs.append(str(run.directory))
         result.seconds += time.perf_counter() - t0
+        done.append((kinds[n], time.perf_counter() - t0))
     results = [per_row[row.name] for row in spec.rows]
     return TableResult(spec, preset, results, time.perf_counter() - start, git_revision())
 

@@ -25,6 +25,7 @@ from kgnavbench.table import (
     combine,
     load_spec,
     parse_spec,
+    time_left,
     to_csv,
     to_latex,
     to_markdown,
@@ -118,6 +119,15 @@ def fake_result(seeds: int = 1) -> TableResult:
         ),
     ]
     return TableResult(spec, preset, rows, 90.0, "abc123")
+
+
+def test_time_left_per_kind_of_row():
+    # before any trained row is done, a random walk's seconds say nothing about the rows to come
+    assert time_left([], [False, True, True]) is None
+    assert time_left([(False, 2.0)], [True, True]) is None
+    # then the mean of each kind times the rows of that kind to come
+    assert time_left([(False, 2.0), (True, 60.0), (True, 120.0)], [True, False]) == 90.0 + 2.0
+    assert time_left([(True, 60.0)], []) == 0.0
 
 
 def test_the_writers_text():

@@ -409,8 +409,10 @@ def test_train_then_eval_every_learned_plugin(capsys, tmp_path, floorplan1_tasks
         rrd = tmp_path / "episodes.rrd"
         argv = ["eval", "--method", method, "--run", str(run_dir), "--kitchens", "FloorPlan1"]
         argv += ["--episodes", "1", "--runs", str(tmp_path), "--record", str(rrd), "--record-episodes", "1"]
-        assert main(argv) == 0
-        assert "recorded 1 episodes" in capsys.readouterr().out and rrd.stat().st_size > 1000
+        assert main([*argv, "--record-steps", "7"]) == 0
+        said = capsys.readouterr().out
+        assert "recorded 1 episodes (" in said and rrd.stat().st_size > 1000
+        assert int(said.split("recorded 1 episodes (")[1].split()[0]) <= 7  # --record-steps ends it
         assert main(["train", *_train(tmp_path, method, 400)[4:], "--record", str(tmp_path / "t.rrd")]) == 0
         assert "recorded" in capsys.readouterr().out and (tmp_path / "t.rrd").exists()
 

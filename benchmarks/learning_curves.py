@@ -1,0 +1,69 @@
+"""Learning curves of Table I's learned LSTM rows: validation SR (and SPL) every `--every` frames.
+
+Trains lstm_a3c, +IL, +TSE, +IL+TSE, +KG and +KG+Attention on the 20 training kitchens (or the given
+ones) into RUNS/train/ (resumable; a finished run is reused), then prints one line per run with its
+validation SR and SPL (%) at every validation, on the first 5 validation kitchens and `--episodes`
+fixed episodes per target, cap 1000. Rows run one after another: never beside another benchmark.
+
+    python benchmarks/learning_curves.py --frames 10M --every 1M --agents 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import time
+from pathlib import Path
+
+from kgnavbench.cli import _frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
+from kgnavbench.train import train_method
+
+ROWS = [
+    ("LSTM A3C", "lstm_a3c", {}),
+    ("+IL", "lstm_a3c", {"il": "true"}),
+    ("+TSE", "lstm_a3c", {"tse": "true"}),
+    ("+IL+TSE", "lstm_a3c", {"il": "true", "tse": "true"}),
+    ("+KG", "kg_attention", {"attention": "false"}),
+    ("+KG+Attention", "kg_attention", {}),
+]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--frames", type=frame_count, default="10M", help="frames per run (10M, 500k)")
+    parser.add_argument("--every", type=frame_count, default="1M", help="frames between validations")
+    parser.add_argument("--agents", default="4", help="agents per training kitchen")
+    parser.add_argument("--episodes", default="2", help="fixed episodes per validation target")
+    parser.add_argument("--rows", default="", help="only these rows, e.g. '+IL,+KG'")
+    parser.add_argument("--kitchens", default="", help="training kitchens (default: all 20)")
+    parser.add_argument("--runs", type=Path, default=Path("runs"))
+    args = parser.parse_args()
+    frames, every = args.frames, args.every
+    rows = [r for r in ROWS if not args.rows or r[0] in args.rows.split(",")]
+    kitchens = tuple(k for k in args.kitchens.split(",") if k)
+    common = {
+        "agents_per_kitchen": args.agents,
+        "val_every": str(every),
+        "log_every": str(min(every, 1_000_000)),
+        "val_episodes": args.episodes,
+    }
+    curves = []
+    for name, method, options in rows:
+        start = time.perf_counter()
+        directory = train_method(
+            method, {**common, **options}, frames, 0, kitchens, args.runs, progress=lambda line: None
+        )
+        with open(directory / "metrics.csv", newline="") as f:
+            points = [r for r in csv.DictReader(f) if r["val_sr"]]
+        line = "  ".join(f"{int(r['frames']) / 1e6:.1f}M {float(r['val_sr']):5.1f}" for r in points)
+        curves.append((name, line, points))
+        seconds = time.perf_counter() - start
+        print(f"{name:14s} validation SR (%) at frames: {line}   ({seconds:.0f} s)", flush=True)
+    print(f"\n{frames:,} frames per run, {args.agents} agents per kitchen; SR / SPL (%) per validation")
+    for name, _, points in curves:
+        cells = " | ".join(f"{float(r['val_sr']):.1f} / {float(r['val_spl']):.1f}" for r in points)
+        print(f"| {name} | {cells} |")
+
+
+if __name__ == "__main__":
+    main()
