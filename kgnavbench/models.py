@@ -629,16 +629,17 @@ class KnowledgeGraph(nn.Module):
     def scores(self, q: Tensor) -> Tensor:
         return self.score(F.relu(self.score_hidden(q))).squeeze(-1)
 
+    def kind_scores(self, base: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Attention scores of an R_z node in the view only, in the target only, and in both."""
+        return tuple(self.scores(torch.stack([base + d1, base + d2, base + d1 + d2])).unbind(0))
+
     def graph_terms(self, adjacency: Tensor) -> GraphTerms:
         """The accumulated graph's per-update terms (GraphTerms) from its (125, 125) adjacency."""
         if self.per_step:
             raise ModelError("kg_graph='per_step' has no per-update graph terms")
         node_features = self.node_features(normalized_adjacency(adjacency.to(self.w0.dtype)))
         base, d1, d2 = self.q_terms(node_features)  # d1, d2: (125, d)
-        scores = None
-        if self.attention:
-            q = torch.stack([base + d1, base + d2, base + d1 + d2])  # (3, 125, d): t, g, both
-            scores = tuple(self.scores(q).unbind(0))
+        scores = self.kind_scores(base, d1, d2) if self.attention else None  # (125,) each
         return GraphTerms(node_features, base, d1, d2, scores)
 
     def forward(
@@ -656,9 +657,8 @@ class KnowledgeGraph(nn.Module):
             u = F.relu(F.relu(u @ self.w1) @ self.w2)
             base, d1, d2 = self.q_terms(u)  # d1, d2: (B, d), the same for every R_z node of a sample
             node_features = None
-            if self.attention:
-                q = torch.stack([base + d1, base + d2, base + d1 + d2])  # (3, B, d): t, g, both
-                s_t, s_g, s_both = (s[:, None] for s in self.scores(q).unbind(0))
+            if self.attention:  # (B,) each: one score for all R_z nodes of a kind in a sample
+                s_t, s_g, s_both = (s[:, None] for s in self.kind_scores(base, d1, d2))
         else:
             if adjacency is None:
                 raise ModelError(

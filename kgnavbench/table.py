@@ -288,8 +288,7 @@ def eval_kitchens(preset: Preset, row: Row) -> tuple[str, ...]:
 
 def run_row(spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path, progress) -> tuple:
     """Train (or find, or resume) one row's run for one seed, then evaluate its best checkpoint."""
-    plugin = load_plugin(row.method)
-    trains = callable(getattr(plugin.module, "train", None))
+    trains = _trains(row)
     options = dict(row.options)
     run_dir = None
     if trains:
