@@ -1,7 +1,8 @@
 """Learning curves of Table I's learned LSTM rows: validation SR (and SPL) every `--every` frames.
 
-Trains lstm_a3c, +IL, +TSE, +IL+TSE, +KG and +KG+Attention on the 20 training kitchens (or the given
-ones) into RUNS/train/ (resumable; a finished run is reused), then prints one line per run with its
+Trains Table I's rows LSTM A3C, +IL, +TSE, +IL+TSE, +KG and +KG+Attention, each with its options
+from tables/table1.toml, on the 20 training kitchens (or the given ones) into RUNS/train/ (resumable;
+a finished run is reused), then prints one line per run with its
 validation SR and SPL (%) at every validation, on the first 5 validation kitchens and `--episodes`
 fixed episodes per target, cap 1000. Rows run one after another: never beside another benchmark.
 
@@ -16,15 +17,13 @@ import time
 from pathlib import Path
 
 from kgnavbench.cli import _frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
+from kgnavbench.table import load_spec
 from kgnavbench.train import train_method
 
 ROWS = [
-    ("LSTM A3C", "lstm_a3c", {}),
-    ("+IL", "lstm_a3c", {"il": "true"}),
-    ("+TSE", "lstm_a3c", {"tse": "true"}),
-    ("+IL+TSE", "lstm_a3c", {"il": "true", "tse": "true"}),
-    ("+KG", "kg_attention", {"attention": "false"}),
-    ("+KG+Attention", "kg_attention", {}),
+    (row.name, row.method, row.options)
+    for row in load_spec().rows
+    if row.method in ("lstm_a3c", "kg_attention")
 ]
 
 

@@ -665,6 +665,20 @@ class KitchenTasks:
             self._dist[key] = far if len(far) else np.flatnonzero(ok & (d == d[ok].max()))
         return self._dist[key]
 
+    def curriculum_starts(self, target: TaskTarget) -> tuple[np.ndarray, np.ndarray]:
+        """Start states for a curriculum on start distance, nearest first, and their BFS distances to
+        the destination: the destination itself, then the states with no receptacle open at pitch 0
+        (the training starts' kind, but the target may be in view). Computed once."""
+        key = (target.object_id, "curriculum")
+        if key not in self._dist:
+            g = self.graph
+            d = self.distances(target, "destination")
+            closed = np.arange(g.n_states) < g.n_closed
+            states = np.flatnonzero((closed & (g.pitch == START_PITCH) & (d > 0)) | (d == 0))
+            states = states[np.argsort(d[states], kind="stable")]
+            self._dist[key] = (states, d[states].astype(np.int64))
+        return self._dist[key]
+
 
 TARGET_FIELDS = {"object": str, "type": str, "kind": str, "seen": bool, "destination": int, "starts": list}
 

@@ -112,6 +112,59 @@ def test_training_starts_are_the_envs(space, floorplan1_tasks):
     assert len(set(nav.target.tolist())) > 5
 
 
+def test_curriculum_starts_at_the_destination_then_ever_farther(space, floorplan1_tasks):
+    """reach 0: every episode starts on its destination; reach r: every start is within r actions, the
+    others at pitch 0 with no receptacle open, and each distance 0..r about equally frequent."""
+    nav = train.Navigators(space, np.zeros(3000, np.int64))
+    nav.draw(np.arange(3000), np.random.default_rng(2), 200, reach=0)
+    assert (nav.state == space.destination[nav.target]).all()
+    nav.draw(np.arange(3000), np.random.default_rng(3), 200, reach=6)
+    dist = space.dist[nav.target, nav.state]
+    away = dist > 0
+    assert (floorplan1_tasks.graph.pitch[nav.state[away]] == 0).all() and space.closed[nav.state[away]].all()
+    counts = np.bincount(dist, minlength=7)
+    assert dist.max() == 6 and counts.min() > 3000 / 7 * 0.7, counts
+    assert (nav.cap == 200).all() and nav.arrived[dist == 0].all() and not nav.arrived[dist > 0].any()
+
+
+def test_curriculum_reach_grows_with_frames_then_ends(tmp_path, floorplan1_tasks):
+    trainer = train.Trainer(
+        tiny_run(tmp_path, frames=2000), tiny_options(start_curriculum=0.5), models.ModelConfig(), True
+    )
+    assert trainer.reach() == 0 and (trainer.nav.state == trainer.space.destination[trainer.nav.target]).all()
+    trainer.frames = 500
+    assert trainer.reach() == train.CURRICULUM_REACH // 2
+    trainer.frames = 1000
+    assert trainer.reach() is None  # over: the training starts as usual
+    assert train.Trainer(tiny_run(tmp_path), tiny_options(), models.ModelConfig(), True).reach() is None
+    with pytest.raises(train.TrainError, match="start_curriculum"):
+        tiny_options(start_curriculum=1.5)
+
+
+def test_stop_ends_from_and_wrong_stop_penalty(tmp_path, floorplan1_tasks, monkeypatch):
+    """Training's wrong Stop is a no-op until frame stop_ends_from, then ends the episode as in
+    evaluation; wrong_stop_penalty is taken off the reward of every Stop that does not succeed."""
+
+    def stop_always(self, space, states, goals, hidden, *rest):
+        zero = sum(p.sum() for p in self.net.parameters()) * 0.0  # a loss that backward() accepts
+        logits = torch.full((len(states), 10), -1e4)
+        logits[:, STOP] = 0.0
+        return logits + zero, torch.zeros(len(states)) + zero, hidden, None
+
+    monkeypatch.setattr(train.Model, "__call__", stop_always)
+    options = tiny_options(stop_ends_from=10, wrong_stop_penalty=0.5, n_steps=3)
+    trainer = train.Trainer(tiny_run(tmp_path), options, models.ModelConfig(), True)
+    rewards = []
+    monkeypatch.setattr(train, "n_step_returns", lambda r, *a: rewards.append(r.clone()) or r.clone())
+    trainer.update()  # frames 0: a wrong Stop is a no-op; the agents stay where they started
+    starts = trainer.nav.start.copy()
+    assert trainer.stats["episodes"] == 0 and (trainer.nav.state == starts).all()
+    assert torch.allclose(rewards[-1], torch.tensor(-0.01 - 0.5))
+    trainer.update()  # frames 12 >= 10: every Stop ends its episode
+    assert trainer.stats["episodes"] == 3 * trainer.nav.n
+    assert torch.allclose(rewards[-1], torch.tensor(-0.01 - 0.5))
+
+
 # ----------------------------------------------------------------------------------------------------
 # the losses
 
@@ -380,8 +433,8 @@ def test_corrupt_checkpoint_and_foreign_run_are_refused(capsys, tmp_path, floorp
     "method, extra",
     [
         ("imitation", ()),
-        ("ff_a3c", ()),
-        ("lstm_a3c", ("il=true", "tse=true", "tse_importance=true")),
+        ("ff_a3c", ("start_curriculum=1.0", "stop_ends_from=0", "episode_cap=50")),
+        ("lstm_a3c", ("il=true", "tse=true", "tse_importance=false")),
         ("kg_attention", ()),
         ("kg_attention", ("attention=false", "kg_graph=per_step")),
         ("lstm_a3c", ("pixels=true",)),  # end to end from the views
