@@ -667,14 +667,15 @@ class KitchenTasks:
 
     def curriculum_starts(self, target: TaskTarget) -> tuple[np.ndarray, np.ndarray]:
         """Start states for a curriculum on start distance, nearest first, and their BFS distances to
-        the destination: the destination itself, then the states with no receptacle open at pitch 0
-        (the training starts' kind, but the target may be in view). Computed once."""
+        the destination: the states with no receptacle open at pitch 0, as the training starts, but
+        the target may be in view and the destination itself is one (where it is closed at pitch 0).
+        Computed once."""
         key = (target.object_id, "curriculum")
         if key not in self._dist:
             g = self.graph
             d = self.distances(target, "destination")
             closed = np.arange(g.n_states) < g.n_closed
-            states = np.flatnonzero((closed & (g.pitch == START_PITCH) & (d > 0)) | (d == 0))
+            states = np.flatnonzero(closed & (g.pitch == START_PITCH) & (d >= 0))
             states = states[np.argsort(d[states], kind="stable")]
             self._dist[key] = (states, d[states].astype(np.int64))
         return self._dist[key]
