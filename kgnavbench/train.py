@@ -108,8 +108,9 @@ class TrainOptions:
     # actions per training episode (the task's 5000); shorter episodes mean more of them per frame
     episode_cap: int = TRAINING_MAX_STEPS
     # a curriculum on start distance over this fraction of the run's frames: training episodes start
-    # at the destination, then ever farther from it (a distance drawn uniformly from 0 to a reach that
-    # grows linearly to CURRICULUM_REACH actions), then from the training starts as usual. Without
+    # as near the destination as a start can be (no receptacle open, pitch 0), then ever farther (a
+    # distance drawn uniformly from 0 to a reach that grows linearly to CURRICULUM_REACH actions; the
+    # nearest start below it where none lies at it), then from the training starts as usual. Without
     # imitation the agents otherwise meet too few successes to learn from in a short run: a
     # destination is one state of thousands (measured, 20 kitchens, 2M frames, lstm_a3c with
     # stop_ends_from=0 and episode_cap=200: seen/seen SR 0 without, 8.6 / 7.6% with 1.0). 0 = off
