@@ -515,14 +515,18 @@ def seen_targets(kitchen: str, targets: list[Target]) -> set[str]:
     return seen | set(static[: max(0, SEEN_TARGETS_PER_KITCHEN - len(seen))])
 
 
+def startable(graph: StateGraph) -> np.ndarray:
+    """(S,) bool: the states an episode may start in, no receptacle open and at pitch 0."""
+    return (np.arange(graph.n_states) < graph.n_closed) & (graph.pitch == START_PITCH)
+
+
 def episode_starts(graph: StateGraph, target: Target, n: int = EPISODES_PER_TARGET) -> list[int]:
     """n closed states at pitch 0 that do not show the target, at least MIN_START_DISTANCE actions from
     the target's destination (the place its image shows), drawn (without replacement while there are
     enough) by a generator seeded with the target."""
     dist = bfs_distances(graph.next_state, goal_mask(graph.n_states, [target.destination]))
-    closed = np.arange(graph.n_states) < graph.n_closed
     unseen = ~goal_mask(graph.n_states, target.goal_states)  # the target is not in view at the start
-    candidates = np.flatnonzero(closed & unseen & (graph.pitch == START_PITCH) & (dist >= MIN_START_DISTANCE))
+    candidates = np.flatnonzero(startable(graph) & unseen & (dist >= MIN_START_DISTANCE))
     if len(candidates) == 0:
         return []
     digest = hashlib.sha256(f"{graph.kitchen}/{target.object_id}".encode()).digest()
@@ -659,8 +663,7 @@ class KitchenTasks:
         if key not in self._dist:
             g = self.graph
             d = self.distances(target, "destination")
-            closed = np.arange(g.n_states) < g.n_closed
-            ok = closed & (g.pitch == START_PITCH) & ~goal_mask(g.n_states, target.goal_states)
+            ok = startable(g) & ~goal_mask(g.n_states, target.goal_states)
             far = np.flatnonzero(ok & (d >= MIN_START_DISTANCE))
             self._dist[key] = far if len(far) else np.flatnonzero(ok & (d == d[ok].max()))
         return self._dist[key]
@@ -672,10 +675,8 @@ class KitchenTasks:
         Computed once."""
         key = (target.object_id, "curriculum")
         if key not in self._dist:
-            g = self.graph
             d = self.distances(target, "destination")
-            closed = np.arange(g.n_states) < g.n_closed
-            states = np.flatnonzero(closed & (g.pitch == START_PITCH) & (d >= 0))
+            states = np.flatnonzero(startable(self.graph) & (d >= 0))
             states = states[np.argsort(d[states], kind="stable")]
             self._dist[key] = (states, d[states].astype(np.int64))
         return self._dist[key]
