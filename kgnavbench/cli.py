@@ -8,8 +8,8 @@
     kgnavbench methods
     kgnavbench eval --method NAME [--success-rule visible|destination] [--stop-noop]
                     [--split table|train|val|test] [--kitchens A,B] [--episodes N] [--set KEY=VALUE]
-                    [--seed S] [--runs DIR] [--run TRAIN_RUN] [--json] [--record FILE.rrd]
-                    [--record-episodes N] [--record-steps N]
+                    [--seed S] [--runs DIR] [--run TRAIN_RUN [--checkpoint best|last]] [--json]
+                    [--record FILE.rrd] [--record-episodes N] [--record-steps N]
     kgnavbench train --method NAME [--set KEY=VALUE] [--frames N] [--seed S] [--kitchens A,B]
                      [--runs DIR] [--record FILE.rrd]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR]
@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 from .env import EnvError
-from .evaluate import SPLITS, EvalConfig, EvalError, evaluate
+from .evaluate import CHECKPOINTS, SPLITS, EvalConfig, EvalError, evaluate, selected_checkpoint
 from .kitchens import KITCHEN_NAMES, Kitchen, KitchenError, check_name, kitchen_summary, load_kitchen
 from .plugins import PluginError, load_plugin, parse_options, plugin_sources
 from .tasks import EPISODES_PER_TARGET, TaskError, build_all, cache_dir, load_tasks
@@ -319,7 +319,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         episodes_per_target=args.episodes,
         seed=args.seed,
         run=str(args.run) if args.run else "",
+        checkpoint=args.checkpoint,
     )
+    if args.checkpoint != "best" and not args.run:
+        raise UsageError("--checkpoint chooses among a training run's checkpoints: give --run DIR too")
     progress = (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else print
     if args.record is not None and not str(args.record).endswith(".rrd"):
         raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
@@ -338,6 +341,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
                 seed=config.seed,
                 stop_ends=config.stop_ends,
                 run=config.run or None,
+                # the evaluated weights, where they are not the run's best-validation checkpoint
+                checkpoint=(
+                    str(selected_checkpoint(config.run, config.method, config.checkpoint))
+                    if config.run and config.checkpoint != "best"
+                    else None
+                ),
                 max_steps=args.record_steps,
             )
         except RecordError as e:
@@ -579,6 +588,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         metavar="DIR",
         help="a learned method's training run (its best-validation checkpoint)",
+    )
+    p.add_argument(
+        "--checkpoint",
+        choices=CHECKPOINTS,
+        default="best",
+        help="which of the run's checkpoints: best.pt, the best validation SR (Table I's rule, default), "
+        "or last.pt, its latest weights (the final ones of a finished run)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="also record episodes with rerun")

@@ -52,6 +52,9 @@ LONG_PATH = 5
 # 2: all episodes of a kitchen in one env reset (a policy's random stream differs from format 1's)
 EVALUATION_FORMAT = 2
 SPLITS = ("table", "train", "val", "test")
+# a training run's checkpoints that `eval --run` can test
+CHECKPOINT_MEANING = {"best": "best validation SR", "last": "the run's latest weights"}
+CHECKPOINTS = tuple(CHECKPOINT_MEANING)
 
 
 class EvalError(ValueError):
@@ -100,8 +103,11 @@ class EvalConfig:
     episodes_per_target: int = EPISODES_PER_TARGET
     seed: int = 0
     run: str = ""  # a learned method's training run directory: its best-validation checkpoint is tested
+    checkpoint: str = "best"  # which of the run's checkpoints: best.pt (Table I's rule) or last.pt
 
     def __post_init__(self) -> None:
+        if self.checkpoint not in CHECKPOINTS:
+            raise EvalError(f"unknown checkpoint {self.checkpoint!r}; choose one of {CHECKPOINTS}")
         if self.success_rule not in SUCCESS_RULES:
             raise EvalError(f"unknown success rule {self.success_rule!r}; choose one of {SUCCESS_RULES}")
         if self.split not in SPLITS:
@@ -211,13 +217,16 @@ def _without_expert(infos: dict) -> dict:
 
 def policy_spec(config: EvalConfig, seed: int, view_size: int) -> PolicySpec:
     """What the policy is told before it starts: for a trained method, its selected checkpoint."""
-    checkpoint = str(selected_checkpoint(config.run, config.method)) if config.run else None
+    checkpoint = (
+        str(selected_checkpoint(config.run, config.method, config.checkpoint)) if config.run else None
+    )
     return PolicySpec.default(seed, view_size, checkpoint)
 
 
-def selected_checkpoint(run: str | Path, method: str) -> Path:
-    """Table I's rule: the checkpoint with the best validation SR (`best.pt` of a training run). The run
-    must be one of `method` (its config.json says which)."""
+def selected_checkpoint(run: str | Path, method: str, which: str = "best") -> Path:
+    """Table I's rule: the checkpoint with the best validation SR (`best.pt` of a training run); with
+    `which="last"`, the run's latest (`last.pt`, the final weights of a finished run). The run must be
+    one of `method` (its config.json says which)."""
     directory = Path(run)
     try:
         trained = json.loads((directory / "config.json").read_text()).get("method")
@@ -225,10 +234,13 @@ def selected_checkpoint(run: str | Path, method: str) -> Path:
         raise EvalError(f"--run {directory} is not a training run (no readable config.json)") from e
     if trained != method:
         raise EvalError(f"--run {directory} trained {trained!r}, not {method!r}")
-    best = directory / "best.pt"
-    if not best.exists():
-        raise EvalError(f"--run {directory} has no best.pt yet (it is saved at the first validation)")
-    return best
+    if which not in CHECKPOINTS:
+        raise EvalError(f"unknown checkpoint {which!r}; choose one of {CHECKPOINTS}")
+    path = directory / f"{which}.pt"
+    if not path.exists():
+        when = "at the first validation" if which == "best" else "at the first checkpoint"
+        raise EvalError(f"--run {directory} has no {path.name} yet (it is saved {when})")
+    return path
 
 
 def _check_actions(plugin: Plugin, actions, agents) -> None:
@@ -409,10 +421,13 @@ def expected_episodes(kitchen: str, per_target: int) -> list[tuple[str, int]]:
 
 def run_identity(config: EvalConfig, plugin: Plugin, plugin_config) -> dict:
     """Everything that decides an evaluation's numbers; its hash names the run directory."""
-    checkpoint = selected_checkpoint(config.run, config.method) if config.run else None
+    checkpoint = selected_checkpoint(config.run, config.method, config.checkpoint) if config.run else None
     return {
-        # as it reads back (tuples are lists); where the run lies is not part of it, its weights are
-        "config": json.loads(json.dumps({k: v for k, v in asdict(config).items() if k != "run"})),
+        # as it reads back (tuples are lists); where the run lies and which of its checkpoints is
+        # tested are not part of it, the tested weights are
+        "config": json.loads(
+            json.dumps({k: v for k, v in asdict(config).items() if k not in ("run", "checkpoint")})
+        ),
         # the tested weights themselves: a retrained run is another evaluation
         "checkpoint_sha256": hashlib.sha256(checkpoint.read_bytes()).hexdigest() if checkpoint else None,
         "plugin_config": json.loads(json.dumps(dataclasses.asdict(plugin_config), default=str)),
@@ -539,5 +554,10 @@ def describe(config: EvalConfig) -> str:
     return (
         f"{config.method}{f' ({options})' if options else ''} — success: Stop {rule}; {stop}; "
         f"{config.episodes_per_target} episodes per target, split {config.split}"
-        + (f"; checkpoint {Path(config.run) / 'best.pt'} (best validation SR)" if config.run else "")
+        + (
+            f"; checkpoint {Path(config.run) / (config.checkpoint + '.pt')} "
+            f"({CHECKPOINT_MEANING[config.checkpoint]})"
+            if config.run
+            else ""
+        )
     )

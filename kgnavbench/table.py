@@ -349,17 +349,24 @@ def run_table(
         left = time_left(done, kinds[n:])
         eta = f", about {left / 60:.0f} min left" if left is not None else ""
         progress(f"== [{n + 1}/{len(jobs)}] {row.name} (seed {seed}){eta}")
-        t0 = time.perf_counter()
+        t0, started = time.perf_counter(), time.time()
         try:
             run_dir, run = run_row(spec, preset, row, seed, runs_dir, progress)
         except PluginError as e:
             raise TableError(f"row {row.name!r}: {e}") from e
+        # a row found done on disk took seconds, not what a row of its kind takes: no ETA sample
+        reused = (
+            run_dir is not None and (run_dir / "finished.json").stat().st_mtime < started
+            if kinds[n]
+            else len(run.resumed) == len(run.config.kitchen_list())
+        )
         result = per_row.setdefault(row.name, RowResult(row, [], [], [], 0.0))
         result.seeds.append(_cells(run))
         result.train_runs.append(str(run_dir) if run_dir else "")
         result.eval_runs.append(str(run.directory))
         result.seconds += time.perf_counter() - t0
-        done.append((kinds[n], time.perf_counter() - t0))
+        if not reused:
+            done.append((kinds[n], time.perf_counter() - t0))
     results = [per_row[row.name] for row in spec.rows]
     return TableResult(spec, preset, results, time.perf_counter() - start, git_revision())
 

@@ -5,8 +5,9 @@ Read it top to bottom:
 
 1. Options and runs. `TrainOptions` holds every option a learned method shares (a plugin's `Config`
    extends it); `train_method` resolves a plugin's config into a run directory
-   `runs/train/<method>-<hash>/` (a hash of the config, the plugin's source, frames, seed and
-   kitchens), writes `config.json` once with the git revision, and calls the plugin's `train` hook.
+   `runs/train/<method>-<hash>/` (a hash of the config, the plugin's source, the training code, frames,
+   seed and kitchens), writes `config.json` once with the git revision, and calls the plugin's `train`
+   hook.
 2. The state space. The training kitchens' state graphs are concatenated into one global state space
    (per kitchen an offset into one next-state table, one success table, the object vectors and the
    per-state features of `models.state_features`), so `Navigators.step` — one step of every agent in
@@ -30,6 +31,7 @@ Read it top to bottom:
 
 from __future__ import annotations
 
+import ast
 import csv
 import dataclasses
 import hashlib
@@ -216,12 +218,39 @@ def training_kitchens(kitchens=()) -> tuple[str, ...]:
     return tuple(dict.fromkeys(kitchens))
 
 
+# the library code that decides a run's numbers besides the plugin: the training starts and the state
+# graphs' semantics, the env's rewards, the models and this trainer (kitchens, world and render reach a
+# run through the state-graph cache, which is keyed by their own fingerprint)
+TRAINING_CODE = ("tasks.py", "env.py", "models.py", "train.py")
+
+
+def training_code_sha256(package: Path = Path(__file__).parent) -> str:
+    """A hash of the training code's syntax trees without docstrings, so that a finished run is not
+    reused after a change to how runs train, while comments, docstrings and formatting do not count."""
+    digest = hashlib.sha256()
+    for name in TRAINING_CODE:
+        tree = ast.parse((package / name).read_text(), filename=name)
+        for node in ast.walk(tree):
+            body = getattr(node, "body", None)
+            if (
+                isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                and body
+                and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)
+            ):
+                node.body = body[1:] or [ast.Pass()]
+        digest.update(f"{name}\0{ast.dump(tree)}\0".encode())
+    return digest.hexdigest()
+
+
 def run_record(plugin, config, frames: int, seed: int, kitchens: tuple[str, ...]) -> dict:
     """What decides a run: its hash names the run directory."""
     return {
         "method": plugin.name,
         "options": json.loads(json.dumps(asdict(config))),
         "plugin_source_sha256": hashlib.sha256(plugin.source_bytes()).hexdigest(),
+        "training_code_sha256": training_code_sha256(),
         "frames": frames,
         "seed": seed,
         "kitchens": list(kitchens),

@@ -388,7 +388,7 @@ def test_state_features_are_cached_reused_and_rebuilt(floorplan5, monkeypatch, c
     path = models.features_path("FloorPlan5")
     assert path.exists() and path.name.endswith(f".features-{models.encoder_hash()}.npy")
     # the same numbers as encoding the views now
-    some = np.asarray(floorplan5.views[:16])
+    some = np.array(floorplan5.views[:16])  # a writable copy of the memory-mapped views
     with torch.no_grad():
         direct = load_encoder()(torch.from_numpy(some)).half().numpy()
     assert np.allclose(features[:16].astype(np.float32), direct.astype(np.float32), atol=1e-2, rtol=1e-2)

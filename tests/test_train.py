@@ -196,7 +196,7 @@ def test_actor_critic_loss_by_hand():
     assert parts["policy"] == pytest.approx(policy, rel=1e-6)
     assert parts["value"] == pytest.approx(1.25)
     assert parts["entropy"] == pytest.approx(1.5)
-    assert float(loss) == pytest.approx(policy + 0.5 * 1.25 - 0.01 * 1.5, rel=1e-6)
+    assert float(loss.detach()) == pytest.approx(policy + 0.5 * 1.25 - 0.01 * 1.5, rel=1e-6)
     # masked: only the first sample counts
     _, parts = train.actor_critic_loss(
         log_prob, value, entropy, returns, 0.5, 0.01, mask=torch.tensor([1.0, 0.0])
@@ -472,6 +472,61 @@ def test_train_then_eval_every_learned_plugin(capsys, tmp_path, floorplan1_tasks
         assert int(said.split("recorded 1 episodes (")[1].split()[0]) <= 7  # --record-steps ends it
         assert main(["train", *_train(tmp_path, method, 400)[4:], "--record", str(tmp_path / "t.rrd")]) == 0
         assert "recorded" in capsys.readouterr().out and (tmp_path / "t.rrd").exists()
+
+
+def test_training_code_hash_ignores_comments_and_docstrings_only(tmp_path):
+    """A run's directory hash covers the training code: a changed line of code is another run (a
+    finished run is not reused after the trainer changed), a comment, a docstring or formatting is not."""
+    package = Path(train.__file__).parent
+    for name in train.TRAINING_CODE:
+        (tmp_path / name).write_text((package / name).read_text())
+    original = train.training_code_sha256(tmp_path)
+    assert original == train.training_code_sha256()
+    text = (tmp_path / "train.py").read_text()
+    cosmetic = text.replace('    """What decides a run: its hash names the run directory."""\n', "")
+    cosmetic = cosmetic.replace("VALIDATION_CAP = 1000", "VALIDATION_CAP  =  1000  # reformatted")
+    assert cosmetic != text
+    (tmp_path / "train.py").write_text(cosmetic + "\n# a comment\n")
+    assert train.training_code_sha256(tmp_path) == original
+    (tmp_path / "train.py").write_text(text.replace("VALIDATION_CAP = 1000", "VALIDATION_CAP = 999"))
+    assert train.training_code_sha256(tmp_path) != original
+    (tmp_path / "train.py").write_text(text)
+    tasks_text = (tmp_path / "tasks.py").read_text()
+    (tmp_path / "tasks.py").write_text(tasks_text + "\nEXTRA = 1\n")
+    assert train.training_code_sha256(tmp_path) != original
+
+
+def test_eval_checkpoint_chooses_best_or_last(capsys, tmp_path, floorplan1_tasks):
+    """`eval --run DIR` tests best.pt (Table I's rule); `--checkpoint last` tests last.pt, the final
+    weights: an evaluation's identity holds the tested file's hash."""
+    import hashlib
+
+    assert main(_train(tmp_path, "lstm_a3c", 400)[3:]) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    base = ["eval", "--method", "lstm_a3c", "--run", str(run_dir), "--kitchens", "FloorPlan1"]
+    base += ["--episodes", "1", "--runs", str(tmp_path), "--json"]
+    # make last.pt other weights than best.pt, as after training past the best validation
+    checkpoint = train.load_checkpoint(run_dir / "last.pt")
+    for tensor in checkpoint["model"].values():
+        if tensor.is_floating_point():
+            tensor.add_(1.0)
+    torch.save(checkpoint, run_dir / "last.pt")
+    tested = {}
+    for which in ("best", "last", None):  # None: the default
+        assert main(base + (["--checkpoint", which] if which else [])) == 0
+        directory = Path(json.loads(capsys.readouterr().out)["run"])
+        identity = json.loads((directory / "config.json").read_text())["identity"]
+        want = hashlib.sha256((run_dir / f"{which or 'best'}.pt").read_bytes()).hexdigest()
+        assert identity["checkpoint_sha256"] == want
+        tested[which] = directory
+    assert tested["best"] != tested["last"] and tested[None] == tested["best"]
+    # --checkpoint without --run, and a run without the asked checkpoint: one clear line each
+    assert main(["eval", "--method", "random_walk", "--checkpoint", "last", "--runs", str(tmp_path)]) == 2
+    assert "give --run DIR too" in capsys.readouterr().err
+    (run_dir / "last.pt").unlink()
+    assert main([*base, "--checkpoint", "last"]) == 2
+    err = capsys.readouterr().err
+    assert "has no last.pt yet" in err and err.count("\n") == 1
 
 
 def test_episode_cap_truncates_training_episodes(tmp_path, floorplan1_tasks):
