@@ -299,7 +299,7 @@ def test_imitation_loss_falls_on_a_fixed_batch(tmp_path, floorplan1_tasks):
         trainer.optimizer.zero_grad()
         loss.backward()
         trainer.optimizer.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
     assert losses[-1] < 0.5 * losses[0]
 
 
