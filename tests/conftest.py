@@ -26,3 +26,12 @@ def hermetic_cache(tmp_path_factory):
 def floorplan1_tasks(hermetic_cache):
     """FloorPlan1's state graph (built into the hermetic cache, ~8 s), targets and fixed episodes."""
     return tasks.load_tasks("FloorPlan1")
+
+
+@pytest.fixture
+def local(tmp_path, monkeypatch):
+    """A researcher's ./baselines folder in a fresh working directory: its plugins join the shipped ones."""
+    folder = tmp_path / "baselines"
+    folder.mkdir()
+    monkeypatch.chdir(tmp_path)
+    return folder

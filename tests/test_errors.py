@@ -30,15 +30,6 @@ def assert_one_line_error(code: int, err: str, *named: str) -> str:
     return lines[0]
 
 
-@pytest.fixture
-def local(tmp_path, monkeypatch):
-    """A researcher's ./baselines folder in a fresh working directory."""
-    folder = tmp_path / "baselines"
-    folder.mkdir()
-    monkeypatch.chdir(tmp_path)
-    return folder
-
-
 def plugin(body: str, privileged: bool = False) -> str:
     head = 'DESCRIPTION = "a broken test plugin"\n' + ("PRIVILEGED = True\n" if privileged else "")
     return head + textwrap.dedent(body)

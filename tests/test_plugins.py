@@ -47,15 +47,6 @@ def test_unknown_method_lists_the_available_ones():
         load_plugin("nope")
 
 
-@pytest.fixture
-def local(tmp_path, monkeypatch):
-    """A researcher's ./baselines folder: the working directory's plugins join the shipped ones."""
-    folder = tmp_path / "baselines"
-    folder.mkdir()
-    monkeypatch.chdir(tmp_path)
-    return folder
-
-
 BROKEN = {
     "no_policy": ('DESCRIPTION = "x"\n', r"no_policy.py is not a kgnavbench plugin: make_policy"),
     "no_description": ("def make_policy(config, spec):\n    return None\n", r"DESCRIPTION"),
