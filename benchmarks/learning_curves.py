@@ -4,9 +4,14 @@ Trains Table I's rows LSTM A3C, +IL, +TSE, +IL+TSE, +KG and +KG+Attention, each 
 from tables/table1.toml, on the 20 training kitchens (or the given ones) into RUNS/train/ (resumable;
 a finished run is reused), then prints one line per run with its
 validation SR and SPL (%) at every validation, on the first 5 validation kitchens and `--episodes`
-fixed episodes per target, cap 1000. Rows run one after another: never beside another benchmark.
+fixed episodes per target, cap 1000. With `--seen`, it also evaluates each run's best-validation
+checkpoint (`best.pt`, Table I's rule) and its final weights (`last.pt`) on the training kitchens'
+seen targets (2 fixed episodes per target, cap 100), as `kgnavbench eval --run DIR --checkpoint
+best|last --split train --episodes 2` does, and prints their seen/seen SR. Rows run one after another:
+never beside another benchmark.
 
     python benchmarks/learning_curves.py --frames 10M --every 1M --agents 4
+    python benchmarks/learning_curves.py --frames 10M --every 1M --agents 4 --rows +KG+Attention --seen
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import time
 from pathlib import Path
 
 from kgnavbench.cli import _frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
+from kgnavbench.evaluate import EvalConfig, evaluate
 from kgnavbench.table import load_spec
 from kgnavbench.train import train_method
 
@@ -36,6 +42,9 @@ def main() -> None:
     parser.add_argument("--rows", default="", help="only these rows, e.g. '+IL,+KG'")
     parser.add_argument("--kitchens", default="", help="training kitchens (default: all 20)")
     parser.add_argument("--runs", type=Path, default=Path("runs"))
+    parser.add_argument(
+        "--seen", action="store_true", help="also the seen/seen SR of each run's best.pt and last.pt"
+    )
     args = parser.parse_args()
     frames, every = args.frames, args.every
     rows = [r for r in ROWS if not args.rows or r[0] in args.rows.split(",")]
@@ -58,10 +67,33 @@ def main() -> None:
         curves.append((name, line, points))
         seconds = time.perf_counter() - start
         print(f"{name:14s} validation SR (%) at frames: {line}   ({seconds:.0f} s)", flush=True)
+        if args.seen:
+            for which in ("best", "last"):
+                seen = seen_sr(method, {**common, **options}, directory, which, kitchens, args.runs)
+                print(f"{name:14s} {seen}", flush=True)
     print(f"\n{frames:,} frames per run, {args.agents} agents per kitchen; SR / SPL (%) per validation")
     for name, _, points in curves:
         cells = " | ".join(f"{float(r['val_sr']):.1f} / {float(r['val_spl']):.1f}" for r in points)
         print(f"| {name} | {cells} |")
+
+
+def seen_sr(method: str, options: dict, directory: Path, which: str, kitchens, runs: Path) -> str:
+    """The seen/seen SR and SPL of one of a run's checkpoints on its training kitchens' seen targets."""
+    config = EvalConfig(
+        method=method,
+        options=tuple(sorted(options.items())),
+        split="train",
+        kitchens=kitchens,
+        episodes_per_target=2,
+        run=str(directory),
+        checkpoint=which,
+    )
+    run = evaluate(config, runs, progress=lambda line: None)
+    cells = []
+    for kind in ("static", "actionable"):
+        m = run.summary[("seen_seen", kind)]
+        cells.append(f"{kind} SR {m.sr:.2f} SPL {m.spl:.2f} ({m.episodes} episodes)")
+    return f"seen/seen, {which}.pt: " + ", ".join(cells)
 
 
 if __name__ == "__main__":
