@@ -753,6 +753,9 @@ class Trainer:
         self.optimizer = torch.optim.Adam(net.parameters(), lr=options.lr)
         self.rng = np.random.default_rng(run.seed)
         self.generator = torch.Generator().manual_seed(run.seed)
+        # training draws nothing from Python's `random`, but a checkpoint saves its state: seeded, two
+        # identical runs write identical checkpoints (and a plugin that uses it stays reproducible)
+        random.seed(run.seed)
         self.frames = self.updates = 0
         self.best_val_sr = -1.0
         self.stats = self._empty_stats()

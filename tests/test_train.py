@@ -372,6 +372,10 @@ def test_killed_training_resumes_to_the_same_weights(tmp_path, hermetic_cache):
         assert torch.equal(a["model"][key], b["model"][key]), key
     for sa, sb in zip(a["optimizer"]["state"].values(), b["optimizer"]["state"].values()):
         assert torch.equal(sa["exp_avg"], sb["exp_avg"])
+    # every random stream ends where the unbroken run's does (Python's too: seeded, though unused)
+    assert a["rng"]["numpy"] == b["rng"]["numpy"] and a["rng"]["python"] == b["rng"]["python"]
+    assert torch.equal(a["rng"]["torch"], b["rng"]["torch"])
+    assert torch.equal(a["rng"]["sampling"], b["rng"]["sampling"])
     rows_a = (run_a / "metrics.csv").read_text().splitlines()
     rows_b = (run_b / "metrics.csv").read_text().splitlines()
     assert [r.split(",")[0] for r in rows_a] == [r.split(",")[0] for r in rows_b]  # no row lost or doubled
