@@ -341,10 +341,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
                 seed=config.seed,
                 stop_ends=config.stop_ends,
                 run=config.run or None,
-                # the evaluated weights, where they are not the run's best-validation checkpoint
+                # the evaluated weights: the checkpoint --checkpoint chose
                 checkpoint=(
                     str(selected_checkpoint(config.run, config.method, config.checkpoint))
-                    if config.run and config.checkpoint != "best"
+                    if config.run
                     else None
                 ),
                 max_steps=args.record_steps,

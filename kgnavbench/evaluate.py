@@ -234,9 +234,7 @@ def selected_checkpoint(run: str | Path, method: str, which: str = "best") -> Pa
         raise EvalError(f"--run {directory} is not a training run (no readable config.json)") from e
     if trained != method:
         raise EvalError(f"--run {directory} trained {trained!r}, not {method!r}")
-    if which not in CHECKPOINTS:
-        raise EvalError(f"unknown checkpoint {which!r}; choose one of {CHECKPOINTS}")
-    path = directory / f"{which}.pt"
+    path = directory / f"{which}.pt"  # `which` is one of CHECKPOINTS: EvalConfig checks it
     if not path.exists():
         when = "at the first validation" if which == "best" else "at the first checkpoint"
         raise EvalError(f"--run {directory} has no {path.name} yet (it is saved {when})")
