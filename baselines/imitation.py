@@ -1,10 +1,12 @@
 """IL: imitation learning alone, Table I's "IL" row.
 
-The LSTM A3C network trained only by imitation, no reward. By default (il_expert=on_policy) the
-agents walk with their own policy and learn the BFS-optimal actions of every state they visit
-(DAgger's labels); il_expert=walk_back is the paper's expert (one 20-step walk back from each
-destination, reversed), il_expert=shortest one BFS-optimal path per target. Frames count the steps
-trained on.
+The LSTM A3C network trained only by imitation, no reward. By default (il_expert=walk_back) it is the
+paper's IL: "only one expert trajectory for each training target", walked back from the destination
+with MoveBack, else MoveLeft, else RotateRight for 10..il_walk steps, then reversed. il_expert=dagger
+is ours, not the paper's: the agents walk with their own policy and learn the BFS-optimal actions of
+every state they visit (DAgger with a privileged shortest-path teacher; Table I's extra row "IL, DAgger
+with a shortest-path teacher"); il_expert=shortest is one BFS-optimal path per target. Frames count
+the steps trained on (with dagger: the steps walked).
 
     kgnavbench train --method imitation --frames 1000000
     kgnavbench eval --method imitation --run runs/train/imitation-...

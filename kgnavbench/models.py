@@ -150,7 +150,11 @@ def load_encoder(path: Path | str = ENCODER_FILE) -> Encoder:
     payload = read_encoder_file(path)
     state = payload["state_dict"]
     feature_dim = state["project.weight"].shape[0] if "project.weight" in state else FEATURE_DIM
-    encoder = Encoder(feature_dim=feature_dim)
+    # the throwaway initial weights must not draw from torch's global generator: whether a kitchen's
+    # features were cached or encoded now (which loads the encoder) must not change a training run's
+    # random state (found: a resumed run's checkpoint differed from an unbroken one's on exactly this)
+    with torch.random.fork_rng(devices=[]):
+        encoder = Encoder(feature_dim=feature_dim)
     try:
         encoder.load_state_dict({k: v.float() for k, v in state.items()})
     except RuntimeError as e:

@@ -17,10 +17,11 @@ Read it top to bottom:
 3. The losses. `n_step_returns`, `actor_critic_loss` (policy gradient, value loss with weight
    `value_weight`, entropy bonus; optional per-sample weights for TSE's importance weights) and
    `imitation_loss` (cross-entropy on expert actions).
-4. IL data (one expert trajectory per training target) and TSE relabelling (`novel_subtargets`,
-   `relabel`): sub-targets are states of the agents' own episodes that show a novel object (a
-   pickupable that is no training target, or another agent's target); each becomes "reach this state
-   and Stop", with its view as the target image, rewards recomputed and a final Stop worth +10.
+4. IL data (one expert trajectory per training target: the paper's walk back from the destination)
+   and TSE (`SubtargetSampler`, `relabel`): per episode, 5 sub-targets sampled at random among the
+   states that showed a novel object (a pickupable that is no target) or another agent's training
+   target; each becomes "reach this state and Stop", with its view as the target image, rewards
+   recomputed and a final Stop worth +10.
 5. `Trainer`: the rollout (20 steps of all agents, forward passes with autograd, one backward per
    rollout), the IL and TSE passes, validation on fixed episodes, and the checkpoint (model,
    optimiser, every RNG, every agent's episode and LSTM state, the co-visibility counts): a run killed
@@ -53,6 +54,7 @@ from .env import ARRIVAL_REWARD, STEP_REWARD, SUCCESS_REWARD, SUCCESS_RULES, TRA
 from .kitchens import KITCHEN_NAMES, atomic_write, check_name, git_revision, object_types
 from .plugins import load_plugin
 from .tasks import (
+    MIN_START_DISTANCE,
     MOVES,
     STOP,
     KitchenTasks,
@@ -65,7 +67,7 @@ from .tasks import (
 
 CHECKPOINT_FORMAT = 1
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
-EXPERTS = ("walk_back", "shortest", "on_policy")
+EXPERTS = ("walk_back", "shortest", "dagger")
 METRICS = (
     "frames",
     "seconds",
@@ -118,6 +120,10 @@ class TrainOptions:
     # stop_ends_from=0 and episode_cap=200: seen/seen SR 0 without, 8.6 / 7.6% with 1.0). 0 = off
     start_curriculum: float = 0.0
     agents_per_kitchen: int = 64  # agents per training kitchen, all stepped at once
+    # each agent keeps one training target (agent j of a kitchen: its target j mod the kitchen's
+    # targets), as the paper's "140 threads, each thread learns for a different target"; false: every
+    # episode draws a target of the agent's kitchen
+    fixed_targets: bool = True
     n_steps: int = 20  # rollout length: n-step returns
     lr: float = 7e-4  # Adam
     gamma: float = 0.99
@@ -127,21 +133,24 @@ class TrainOptions:
     bf16: bool = True  # bfloat16 autocast (CPU)
     hidden: int = 256  # siamese / fusion width
     lstm: int = 256
-    # imitation learning: cross-entropy on one expert trajectory per training target
+    # imitation learning: cross-entropy on expert trajectories
     il: bool = False
-    # "on_policy": the BFS-optimal actions of every state the agents visit (DAgger's labels, no
-    # separate pass); "walk_back": the paper's expert, one 20-step walk back from each destination;
-    # "shortest": one BFS-optimal path per target from a training start. The default is not the
-    # paper's: with walk-back IL, lstm_a3c il=true tse=true had a training SR near 0 after 3M frames
-    # in FloorPlan1, with on-policy labels 86-95% after 750k-1M (measured; README).
-    il_expert: str = "on_policy"
-    il_walk: int = 20  # walk-back steps from the destination
+    # "walk_back": the paper's expert, "only one expert trajectory for each training target": from the
+    # destination, MoveBack, else MoveLeft, else RotateRight, for a walk of random length, reversed;
+    # "shortest": one BFS-optimal path per target from a training start; "dagger": the BFS-optimal
+    # actions of every state the agents visit (DAgger with a privileged shortest-path teacher, not the
+    # paper's IL: it learns far more, e.g. 91% seen/seen SR against the paper's 8%)
+    il_expert: str = "walk_back"
+    il_walk: int = 25  # the walk back is 10..il_walk steps long (drawn per target), as the training starts
     il_frames: int = 2_000_000  # IL is mixed into the loss until this many frames ("online")
     il_batch: int = 32  # expert trajectories per update
     il_weight: float = 1.0
     # target skill extension: relabelled sub-trajectories of the agents' own episodes
     tse: bool = False
-    tse_subtargets: int = 5  # per episode at most
+    tse_subtargets: int = 5  # per episode, sampled at random among the states that show a novel object
+    # the seen kitchens' unseen targets may be sub-targets (the paper's "TSE (targets)"): this trains on
+    # the seen-kitchens/unseen-targets column's test targets, so it is off by default ("TSE (seen targets)")
+    tse_unseen_targets: bool = False
     tse_window: int = 40  # steps before the sub-target that are relabelled
     tse_batch: int = 64  # sub-trajectories per update
     # measured in FloorPlan1 (lstm_a3c il=true tse=true, 3M frames): at 1.0 the relabelled "Stop
@@ -338,7 +347,7 @@ class StateSpace:
     fixed_starts: list[tuple[int, ...]]  # the task file's episodes (global states)
     kitchen_rows: np.ndarray  # target rows of kitchen k: kitchen_rows[kitchen_ptr[k]:kitchen_ptr[k + 1]]
     kitchen_ptr: np.ndarray
-    tse_types: np.ndarray  # (K, 125) pickupable types that are no training target of the kitchen
+    tse_types: np.ndarray  # (K, 125) novel objects: pickupable types that are no target (build_space)
     tasks: list[KitchenTasks] = field(repr=False)
     views: np.ndarray | None = field(default=None, repr=False)  # (S, 84, 84, 3) uint8, pixel models
 
@@ -353,10 +362,15 @@ class StateSpace:
 
 
 def build_space(
-    kitchens, targets: str = "seen", success_rule: str = "destination", pixels: bool = False
+    kitchens,
+    targets: str = "seen",
+    success_rule: str = "destination",
+    pixels: bool = False,
+    unseen_subtargets: bool = False,
 ) -> StateSpace:
     """Load the kitchens' state graphs, features and targets ('seen': training targets; 'all'), and
-    with `pixels` their views."""
+    with `pixels` their views. TSE's novel objects (`tse_types`) are the pickupable types that are no
+    training target of the kitchen and, unless `unseen_subtargets`, no unseen target of it either."""
     types = {t: i for i, t in enumerate(object_types())}
     parts, rows, offsets, all_tasks = [], [], [0], []
     tse_types = np.zeros((len(kitchens), len(types)), bool)
@@ -370,8 +384,9 @@ def build_space(
         if not chosen:
             raise TrainError(f"{name} has no {targets} targets")
         training_types = {t.type for t in kt.targets if t.seen}
+        held_out = set() if unseen_subtargets else {t.type for t in kt.targets if not t.seen}
         for o in g.world.objects:
-            if o.pickupable and o.type not in training_types:
+            if o.pickupable and o.type not in training_types and o.type not in held_out:
                 tse_types[k, types[o.type]] = True
         parts.append((g, feats, kt))
         rows += [(k, off, kt, t) for t in chosen]
@@ -452,10 +467,18 @@ class Navigators:
         "episode_return",
     )  # fmt: skip
 
-    def __init__(self, space: StateSpace, kitchen: np.ndarray, stop_ends: bool = True):
+    def __init__(
+        self,
+        space: StateSpace,
+        kitchen: np.ndarray,
+        stop_ends: bool = True,
+        assigned: np.ndarray | None = None,
+    ):
         n = len(kitchen)
         self.space, self.stop_ends, self.n = space, stop_ends, n
         self.kitchen = np.asarray(kitchen, np.int64).copy()
+        # each agent's own target row (the paper's one target per thread); None: drawn per episode
+        self.assigned = None if assigned is None else np.asarray(assigned, np.int64).copy()
         for name in ("target", "state", "start", "steps", "path", "collisions", "cap"):
             setattr(self, name, np.zeros(n, np.int64))
         self.success = np.zeros(n, bool)
@@ -472,13 +495,17 @@ class Navigators:
         self.episode_return[idx] = 0.0
 
     def draw(self, idx: np.ndarray, rng: np.random.Generator, cap: int, reach: int | None = None) -> None:
-        """Training episodes as the env draws them: a target of the agent's kitchen, then a start;
-        with `reach`, a distance in 0..reach drawn uniformly, then a start at that distance from the
-        destination (or the nearest distance below it that has one), so near starts stay frequent."""
+        """Training episodes as the env draws them: the agent's own target (or, without assigned
+        targets, one of its kitchen's), then a start; with `reach`, a distance in 0..reach drawn
+        uniformly, then a start at that distance from the destination (or the nearest distance below
+        it that has one), so near starts stay frequent."""
         sp = self.space
-        k = self.kitchen[idx]
-        lo = sp.kitchen_ptr[k]
-        targets = sp.kitchen_rows[lo + rng.integers(0, sp.kitchen_ptr[k + 1] - lo)]
+        if self.assigned is not None:
+            targets = self.assigned[idx]
+        else:
+            k = self.kitchen[idx]
+            lo = sp.kitchen_ptr[k]
+            targets = sp.kitchen_rows[lo + rng.integers(0, sp.kitchen_ptr[k + 1] - lo)]
         if reach is None:
             lo = sp.start_ptr[targets]
             starts = sp.start_flat[lo + rng.integers(0, sp.start_ptr[targets + 1] - lo)]
@@ -617,15 +644,17 @@ def pad(seqs: list[tuple[list[int], list[int]]], goals, extra=None) -> Sequences
 
 
 def expert_sequences(space: StateSpace, expert: str, walk: int, rng: np.random.Generator) -> Sequences:
-    """One expert trajectory per target of the space: the paper's walk-back from the destination
-    (`walk` steps back, reversed), or the BFS-optimal path from a training start drawn by rng."""
+    """One expert trajectory per target of the space: the paper's walk-back from the destination (a
+    walk of 10..`walk` steps, its length drawn by rng: "to a random start"; reversed), or the
+    BFS-optimal path from a training start drawn by rng."""
     seqs = []
     for r in range(len(space.target_ids)):
         k = space.target_kitchen[r]
         off, kt = space.offsets[k], space.tasks[k]
         dest = int(space.destination[r])
         if expert == "walk_back":
-            start, actions = walk_back_trajectory(kt.graph, dest - off, walk)
+            steps = int(rng.integers(min(MIN_START_DISTANCE, walk), walk + 1))
+            start, actions = walk_back_trajectory(kt.graph, dest - off, steps)
             start += off
         else:
             lo, hi = space.start_ptr[r], space.start_ptr[r + 1]
@@ -640,17 +669,120 @@ def expert_sequences(space: StateSpace, expert: str, walk: int, rng: np.random.G
     return pad(seqs, space.destination)
 
 
-def novel_subtargets(
-    seen: np.ndarray, objects_after: np.ndarray, eligible: np.ndarray, count: np.ndarray, limit: int
-) -> np.ndarray:
-    """TSE's sub-target test for one step of a batch of episodes: the state just reached is a
-    sub-target when it shows an eligible object type not seen before in the episode and the episode has
-    fewer than `limit` sub-targets. Updates `seen` and `count` in place; returns the mask of agents."""
-    after = objects_after.astype(bool)
-    fire = (after & ~seen & eligible).any(axis=1) & (count < limit)
-    seen |= after
-    count += fire
-    return fire
+def assign_targets(space: StateSpace, kitchen: np.ndarray) -> np.ndarray:
+    """One training target per agent, as the paper's threads: the j-th agent of a kitchen trains its
+    kitchen's target j mod (targets of the kitchen). Every target needs an agent."""
+    kitchen = np.asarray(kitchen, np.int64)
+    assigned = np.empty(len(kitchen), np.int64)
+    for k in range(len(space.kitchens)):
+        rows = space.kitchen_rows[space.kitchen_ptr[k] : space.kitchen_ptr[k + 1]]
+        agents = np.flatnonzero(kitchen == k)
+        if len(agents) < len(rows):
+            raise TrainError(
+                f"{space.kitchens[k]} has {len(rows)} training targets but {len(agents)} agents: with "
+                f"fixed_targets each target needs an agent (set agents_per_kitchen to at least {len(rows)}, "
+                "or fixed_targets=false)"
+            )
+        assigned[agents] = rows[np.arange(len(agents)) % len(rows)]
+    return assigned
+
+
+def subtarget_types(space: StateSpace) -> np.ndarray:
+    """(T, 125) per training target, the object types whose sight makes a state one of TSE's
+    sub-targets for an agent training that target: novel objects (`tse_types`) and the kitchen's other
+    training targets ("the targets trained by other threads"), never its own target's type."""
+    n_types = space.objects.shape[1]
+    own = np.zeros((len(space.kitchens), n_types), bool)
+    own[space.target_kitchen, space.target_type] = True
+    eligible = space.tse_types[space.target_kitchen] | own[space.target_kitchen]
+    eligible[np.arange(len(space.target_ids)), space.target_type] = False
+    return eligible
+
+
+class SubtargetSampler:
+    """TSE's sub-targets, sampled as the paper: per agent and episode, `k` of the steps that reached a
+    state showing a sub-target object (`subtarget_types`), drawn uniformly at random among all such
+    steps of the episode (reservoir sampling, Algorithm R, so the whole episode need not be kept).
+    Each kept step is stored with the window of at most `window` steps of its episode that led to it;
+    `finish` hands an ended episode's samples over for relabelling. Its arrays are its state."""
+
+    FIELDS = ("ring_state", "ring_action", "ring_prob", "episode_tick", "count", "slot_state",
+              "slot_action", "slot_prob", "slot_length", "slot_goal")  # fmt: skip
+
+    def __init__(self, n_agents: int, k: int, window: int):
+        self.k, self.window = k, window
+        shape = (n_agents, window)
+        # the last `window` steps of every agent (column tick % window): state before, action, its prob
+        self.ring_state = np.zeros(shape, np.int64)
+        self.ring_action = np.zeros(shape, np.int64)
+        self.ring_prob = np.zeros(shape, np.float64)
+        self.episode_tick = np.zeros(n_agents, np.int64)  # the tick of the episode's first step
+        self.count = np.zeros(n_agents, np.int64)  # sub-target steps met in this episode
+        self.slot_state = np.zeros((n_agents, k, window), np.int64)  # chronological, right-aligned
+        self.slot_action = np.zeros((n_agents, k, window), np.int64)
+        self.slot_prob = np.zeros((n_agents, k, window), np.float64)
+        self.slot_length = np.zeros((n_agents, k), np.int64)
+        self.slot_goal = np.zeros((n_agents, k), np.int64)
+
+    def step(self, tick, before, actions, probs, after, candidate, rng: np.random.Generator) -> None:
+        """Record one step of every agent; `candidate` marks the agents whose step reached a state
+        showing a sub-target object (a Stop reaches nothing new: the caller leaves Stops out)."""
+        column = tick % self.window
+        self.ring_state[:, column], self.ring_action[:, column], self.ring_prob[:, column] = (
+            before,
+            actions,
+            probs,
+        )
+        idx = np.flatnonzero(candidate)
+        if not len(idx) or not self.k:
+            return
+        self.count[idx] += 1
+        m = self.count[idx]
+        # Algorithm R: the m-th candidate fills slot m-1 while there is one, else replaces a random
+        # slot with probability k/m
+        slot = np.where(m <= self.k, m - 1, rng.integers(0, m))
+        keep = slot < self.k
+        idx, slot = idx[keep], slot[keep]
+        if not len(idx):
+            return
+        length = np.minimum(self.window, tick - self.episode_tick[idx] + 1)
+        columns = (tick - self.window + 1 + np.arange(self.window)) % self.window
+        self.slot_state[idx, slot] = self.ring_state[idx][:, columns]
+        self.slot_action[idx, slot] = self.ring_action[idx][:, columns]
+        self.slot_prob[idx, slot] = self.ring_prob[idx][:, columns]
+        self.slot_length[idx, slot] = length
+        self.slot_goal[idx, slot] = after[idx]
+
+    def finish(self, idx: np.ndarray, next_tick: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, int]]:
+        """The sampled windows (states, actions, behaviour probs, sub-target state) of the agents
+        whose episodes ended; their next episodes start at `next_tick` with nothing sampled."""
+        out = []
+        for i in idx:
+            for j in range(min(int(self.count[i]), self.k)):
+                n = int(self.slot_length[i, j])
+                out.append(
+                    (
+                        self.slot_state[i, j, -n:].copy(),
+                        self.slot_action[i, j, -n:].copy(),
+                        self.slot_prob[i, j, -n:].copy(),
+                        int(self.slot_goal[i, j]),
+                    )
+                )
+        self.count[idx] = 0
+        self.episode_tick[idx] = next_tick
+        return out
+
+    def state_dict(self) -> dict:
+        return {name: torch.from_numpy(getattr(self, name).copy()) for name in self.FIELDS}
+
+    def load_state_dict(self, d: dict) -> None:
+        for name in self.FIELDS:
+            value = d[name].numpy()
+            if value.shape != getattr(self, name).shape:
+                raise ValueError(
+                    f"TSE's {name} has shape {value.shape}, expected {getattr(self, name).shape}"
+                )
+            setattr(self, name, value.copy())
 
 
 def relabel(states, actions, behaviour, goal: int) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
@@ -740,7 +872,9 @@ class Trainer:
         self.kitchens = list(run.kitchens)
         self.model_config = dataclasses.replace(model_config, n_scenes=len(self.kitchens))
         self.ff = self.model_config.arch == "ff"
-        self.space = build_space(self.kitchens, "seen", options.success_rule, self.model_config.pixels)
+        self.space = build_space(
+            self.kitchens, "seen", options.success_rule, self.model_config.pixels, options.tse_unseen_targets
+        )
         # seeded after build_space: encoding features on a cache miss draws from torch's generator
         torch.manual_seed(run.seed)
         net = models.make_model(self.model_config)
@@ -761,32 +895,30 @@ class Trainer:
         self.stats = self._empty_stats()
         self.val_space: StateSpace | None = None
         n_agents = options.agents_per_kitchen * len(self.kitchens)
+        kitchen = np.repeat(np.arange(len(self.kitchens)), options.agents_per_kitchen)
         self.nav = Navigators(
             self.space,
-            np.repeat(np.arange(len(self.kitchens)), options.agents_per_kitchen),
+            kitchen,
             stop_ends=options.stop_ends_from == 0,
+            assigned=assign_targets(self.space, kitchen) if options.fixed_targets else None,
         )
         self.cap = options.episode_cap
         self.nav.draw(np.arange(n_agents), self.rng, self.cap, self.reach())
         self.hidden = net.initial_state(n_agents)
         self.history = np.repeat(self.nav.state[:, None], self.model_config.history, 1) if self.ff else None
-        # TSE: per agent the types seen this episode, sub-targets so far, and a ring of recent steps
-        self.ring = options.tse_window + options.n_steps
-        self.tick = 0
-        self.seen = self.space.objects[self.nav.state].astype(bool)
-        self.subtargets = np.zeros(n_agents, np.int64)
-        self.episode_tick = np.zeros(n_agents, np.int64)
-        self.ring_state = np.zeros((n_agents, self.ring), np.int64)
-        self.ring_action = np.zeros((n_agents, self.ring), np.int64)
-        self.ring_prob = np.zeros((n_agents, self.ring), np.float64)
-        self.candidates: list[tuple[int, int, int, int]] = []  # (agent, tick, episode tick, sub-target)
+        # TSE: the sub-targets sampled per episode, and the windows of the episodes that ended during
+        # this rollout, relabelled by the update that follows it
+        self.tick = 0  # steps of the run (every agent steps at each tick)
+        self.tse = SubtargetSampler(n_agents, options.tse_subtargets, options.tse_window)
+        self.subtarget_types = subtarget_types(self.space)
+        self.tse_windows: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []
         self.il = options.il or not rl
-        self.on_policy = self.il and options.il_expert == "on_policy"
+        self.dagger = self.il and options.il_expert == "dagger"
         self.experts = (
             expert_sequences(
                 self.space, options.il_expert, options.il_walk, np.random.default_rng([run.seed, 1])
             )
-            if self.il and not self.on_policy
+            if self.il and not self.dagger
             else None
         )
 
@@ -805,8 +937,8 @@ class Trainer:
         loss = torch.zeros(())
         imitate = self.il and (not self.rl or self.frames < self.opts.il_frames)
         self.nav.stop_ends = self.opts.stop_ends_from is not None and self.frames >= self.opts.stop_ends_from
-        if self.rl or self.on_policy:
-            rl_loss, il_loss = self.rollout(adjacency, imitate and self.on_policy)
+        if self.rl or self.dagger:
+            rl_loss, il_loss = self.rollout(adjacency, imitate and self.dagger)
             if self.rl:
                 loss = loss + rl_loss
                 self.stats["rl"] += rl_loss.item()
@@ -815,7 +947,7 @@ class Trainer:
                 loss = loss + self.opts.il_weight * il_loss
                 self.stats["il"] += il_loss.item()
                 self.stats["losses_il"] += 1
-        if imitate and not self.on_policy:
+        if imitate and not self.dagger:
             il_loss, n_frames = self.imitation(adjacency)
             loss = loss + self.opts.il_weight * il_loss
             self.stats["il"] += il_loss.item()
@@ -868,7 +1000,9 @@ class Trainer:
             rewards[t], dones[t] = r, done
             visited.append(nav.state.copy())
             if opts.tse:
-                self._record_tse(before, a, probs.gather(1, action[:, None]).squeeze(1).numpy())
+                candidate = (a != STOP) & (space.objects[nav.state] & self.subtarget_types[nav.target]).any(1)
+                taken = probs.gather(1, action[:, None]).squeeze(1).numpy()
+                self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng)
             self.tick += 1
             finished = np.flatnonzero(done)
             if len(finished):
@@ -908,63 +1042,41 @@ class Trainer:
         return int(CURRICULUM_REACH * self.frames / n)
 
     def _new_episodes(self, idx: np.ndarray) -> None:
+        if self.opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
+            self.tse_windows += self.tse.finish(idx, self.tick)
         self.nav.draw(idx, self.rng, self.cap, self.reach())
-        self.seen[idx] = self.space.objects[self.nav.state[idx]].astype(bool)
-        self.subtargets[idx] = 0
-        self.episode_tick[idx] = self.tick
-
-    def _record_tse(self, before: np.ndarray, actions: np.ndarray, probs: np.ndarray) -> None:
-        """Keep this step in the ring; note the agents whose new state is a sub-target."""
-        nav, space = self.nav, self.space
-        slot = self.tick % self.ring
-        self.ring_state[:, slot], self.ring_action[:, slot], self.ring_prob[:, slot] = before, actions, probs
-        # eligible: pickupable types that are no training target, and the other agents' target types
-        n_types = space.objects.shape[1]
-        own = space.target_type[nav.target]
-        counts = np.bincount(nav.kitchen * n_types + own, minlength=len(self.kitchens) * n_types)
-        counts = counts.reshape(len(self.kitchens), n_types)[nav.kitchen]
-        counts[np.arange(nav.n), own] -= 1
-        eligible = space.tse_types[nav.kitchen] | (counts > 0)
-        eligible[np.arange(nav.n), own] = False
-        fire = novel_subtargets(
-            self.seen, space.objects[nav.state], eligible, self.subtargets, self.opts.tse_subtargets
-        )
-        for i in np.flatnonzero(fire):
-            self.candidates.append((int(i), self.tick, int(self.episode_tick[i]), int(nav.state[i])))
 
     def subtrajectories(self) -> Sequences | None:
-        """Up to tse_batch of this rollout's sub-targets, relabelled; the rest are dropped."""
-        if not self.candidates:
+        """Up to tse_batch of the sub-targets sampled in the episodes that ended during this rollout,
+        relabelled; the rest are dropped."""
+        windows, self.tse_windows = self.tse_windows, []
+        if not windows:
             return None
-        take = self.rng.choice(
-            len(self.candidates), min(self.opts.tse_batch, len(self.candidates)), replace=False
-        )
+        take = self.rng.choice(len(windows), min(self.opts.tse_batch, len(windows)), replace=False)
         seqs, goals, rewards, behaviour = [], [], [], []
         for j in sorted(take):
-            agent, tick, episode_tick, goal = self.candidates[j]
-            ticks = np.arange(max(episode_tick, tick - self.opts.tse_window + 1), tick + 1) % self.ring
+            states, actions, probs, goal = windows[j]
             # the relabelled episode starts after the window's last Stop: in the task "reach the
             # sub-target and Stop" that Stop ended the episode (a failure), so the walk after it is
             # the whole episode; keeping it would reward a wrong Stop with the sub-target's +10. The
             # failure itself (tse_failures) is a one-step episode: Stop where it stopped, -0.01.
-            stops = np.flatnonzero(self.ring_action[agent, ticks] == STOP)
+            # (Only where training's wrong Stop is a no-op: where it ends the episode, no window holds one.)
+            stops = np.flatnonzero(actions == STOP)
             if len(stops):
-                stopped_at = int(self.ring_state[agent, ticks[stops[-1]]])
-                if self.opts.tse_failures and stopped_at != goal:
-                    seqs.append(([stopped_at], [STOP]))
+                last = stops[-1]
+                if self.opts.tse_failures and states[last] != goal:
+                    seqs.append(([int(states[last])], [STOP]))
                     goals.append(goal)
                     rewards.append(step_rewards(np.zeros(1, bool), np.zeros(1, bool)))
-                    behaviour.append(self.ring_prob[agent, ticks[stops[-1:]]].astype(np.float64))
-                ticks = ticks[stops[-1] + 1 :]
-            if len(ticks) == 0:
+                    behaviour.append(probs[last : last + 1].astype(np.float64))
+                states, actions, probs = states[last + 1 :], actions[last + 1 :], probs[last + 1 :]
+            if len(actions) == 0:
                 continue
-            states = list(self.ring_state[agent, ticks]) + [goal]
-            s, a, r, mu = relabel(states, self.ring_action[agent, ticks], self.ring_prob[agent, ticks], goal)
+            s, a, r, mu = relabel(list(states) + [goal], actions, probs, goal)
             seqs.append((s, a))
             goals.append(goal)
             rewards.append(r)
             behaviour.append(mu)
-        self.candidates = []
         if not seqs:
             return None
         seq = pad(seqs, goals)
@@ -1075,10 +1187,7 @@ class Trainer:
             "agents": self.nav.state_dict(),
             "hidden": self.hidden,
             "history": None if self.history is None else torch.from_numpy(self.history.copy()),
-            "tse": {
-                name: torch.from_numpy(getattr(self, name).copy())
-                for name in ("seen", "subtargets", "episode_tick", "ring_state", "ring_action", "ring_prob")
-            },
+            "tse": self.tse.state_dict(),
         }
 
     def load_state_dict(self, ck: dict) -> None:
@@ -1092,8 +1201,7 @@ class Trainer:
         self.nav.load_state_dict(ck["agents"])
         self.hidden = ck["hidden"]
         self.history = None if ck["history"] is None else ck["history"].numpy().copy()
-        for name, value in ck["tse"].items():
-            setattr(self, name, value.numpy().copy())
+        self.tse.load_state_dict(ck["tse"])
         self.frames, self.updates, self.tick = ck["frames"], ck["updates"], ck["tick"]
         self.best_val_sr, self.stats = ck["best_val_sr"], dict(ck["stats"])
 
@@ -1217,7 +1325,7 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
     every = options.log_every
     next_log = (trainer.frames // every + 1) * every
     next_val = (trainer.frames // options.val_every + 1) * options.val_every
-    agents = trainer.nav.n if rl or trainer.on_policy else 0
+    agents = trainer.nav.n if rl or trainer.dagger else 0
     progress(
         f"training {run.method} on {len(trainer.kitchens)} kitchens "
         f"({len(trainer.space.target_ids)} targets, "

@@ -291,7 +291,7 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
     assert record.unseen_kitchen_stats(record.read_episodes(ff)) is None
 
     options = {
-        "agents_per_kitchen": "2",
+        "agents_per_kitchen": "7",
         "n_steps": "5",
         "hidden": "16",
         "lstm": "16",

@@ -210,6 +210,29 @@ def test_walk_back_trajectory_ends_at_the_destination(floorplan1_tasks, object_i
     assert s == target.destination
 
 
+def test_walk_back_trajectory_hand_checked(floorplan1_tasks):
+    """The paper's expert for FloorPlan1's StoveBurner (destination x 0.00, z -1.75, facing 180 = -z,
+    looking 30 down), 12 steps, checked by hand on the reachable grid: MoveBack (+z) twice to z -1.25,
+    where the next cell behind is blocked; MoveLeft (facing -z, left is +x) four times to x 1.00;
+    MoveBack once to z -1.00, blocked again; MoveLeft once to x 1.25; MoveBack four times to z 0.00.
+    Reversed: MoveAhead x4, MoveRight, MoveAhead, MoveRight x4, MoveAhead x2, then Stop."""
+    graph = floorplan1_tasks.graph
+    target = next(t for t in floorplan1_tasks.targets if t.object_id.startswith("StoveBurner|-00.04"))
+    assert graph.pose(target.destination) == Pose((0, -7), 180, 30)  # cells of 0.25 m
+    start, actions = walk_back_trajectory(graph, target.destination, 12)
+    assert graph.pose(start) == Pose((5, 0), 180, 30)
+    names = [ACTIONS[a] for a in actions]
+    assert names == ["MoveAhead"] * 4 + ["MoveRight", "MoveAhead"] + ["MoveRight"] * 4 + ["MoveAhead"] * 2 + [
+        "Stop"
+    ]
+    poses, s = [], start
+    for a in actions:
+        poses.append(graph.pose(s))
+        s = int(graph.next_state[s, a])
+    assert poses[4:7] == [Pose((5, -4), 180, 30), Pose((4, -4), 180, 30), Pose((4, -5), 180, 30)]
+    assert s == target.destination
+
+
 def test_walk_back_prefers_move_back(floorplan1_tasks):
     # one step back from the destination: MoveBack if it can, so the expert's only move is MoveAhead
     graph = floorplan1_tasks.graph

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # what makes a training run take seconds: few agents, short rollouts, small networks, one validation
 # kitchen with one episode per target
 TINY = {
-    "agents_per_kitchen": "4",
+    "agents_per_kitchen": "7",
     "n_steps": "5",
     "hidden": "32",
     "lstm": "32",
@@ -216,24 +216,102 @@ def test_relabel_a_hand_made_trajectory():
         train.relabel([7, 8], [0], [0.5], 5)  # does not end at the goal
 
 
-def test_novel_subtargets_fire_once_per_new_type_up_to_the_limit():
-    seen = np.array([[1, 0, 0, 0], [0, 0, 0, 0]], bool)
-    count = np.zeros(2, np.int64)
-    eligible = np.array([[1, 1, 0, 1], [1, 1, 1, 1]], bool)
-    fire = train.novel_subtargets(seen, np.array([[1, 0, 1, 0], [0, 1, 0, 0]]), eligible, count, 2)
-    assert fire.tolist() == [False, True]  # agent 0: type 0 was seen, type 2 is not eligible
-    fire = train.novel_subtargets(seen, np.array([[0, 1, 0, 0], [0, 1, 0, 0]]), eligible, count, 2)
-    assert fire.tolist() == [True, False]  # agent 1 has seen type 1 already
-    fire = train.novel_subtargets(seen, np.array([[0, 0, 0, 1], [1, 0, 0, 0]]), eligible, count, 1)
-    assert fire.tolist() == [False, False]  # both at the limit of 1
-    assert count.tolist() == [1, 1]
+def test_subtarget_sampler_keeps_a_uniform_sample_of_k_per_episode():
+    """Algorithm R: of m candidate steps in an episode, each ends up among the k kept with probability
+    k/m; the kept windows are the steps of the episode that led to the candidate, in order."""
+    k, m, episodes = 2, 8, 4000
+    rng = np.random.default_rng(0)
+    sampler = train.SubtargetSampler(1, k, window=3)
+    kept = np.zeros(m, np.int64)
+    tick = 0
+    for _ in range(episodes):
+        for step in range(m):
+            # agent 0 walks states 100 + step, action `step`; every step reaches a candidate state
+            sampler.step(tick, np.array([100 + step]), np.array([step % 9]), np.array([0.5]),
+                         np.array([200 + step]), np.array([True]), rng)  # fmt: skip
+            tick += 1
+        windows = sampler.finish(np.array([0]), tick)
+        assert len(windows) == k
+        for states, actions, probs, goal in windows:
+            step = goal - 200
+            kept[step] += 1
+            n = min(3, step + 1)  # the window never reaches into the previous episode
+            assert states.tolist() == [100 + s for s in range(step - n + 1, step + 1)]
+            assert actions.tolist() == [s % 9 for s in range(step - n + 1, step + 1)]
+            assert probs.tolist() == [0.5] * n
+    share = kept / episodes
+    assert share == pytest.approx(np.full(m, k / m), abs=0.03)  # 0.25 each; sd about 0.007
+    assert sampler.finish(np.array([0]), tick) == []  # nothing sampled since the episode ended
+
+
+def test_subtarget_sampler_keeps_every_candidate_below_k_and_checkpoints():
+    sampler = train.SubtargetSampler(2, 5, window=4)
+    rng = np.random.default_rng(0)
+    for tick, candidate in enumerate([[False, True], [True, False], [False, True]]):
+        sampler.step(tick, np.array([tick, 10 + tick]), np.array([1, 2]), np.array([0.1, 0.2]),
+                     np.array([tick + 1, 11 + tick]), np.array(candidate), rng)  # fmt: skip
+    copy = train.SubtargetSampler(2, 5, window=4)
+    copy.load_state_dict(sampler.state_dict())
+    for s in (sampler, copy):
+        windows = s.finish(np.array([0, 1]), 3)
+        assert [w[3] for w in windows] == [2, 11, 13]  # agent 0's candidate, then agent 1's two
+        assert windows[2][0].tolist() == [10, 11, 12]
+    with pytest.raises(ValueError, match="shape"):
+        train.SubtargetSampler(3, 5, window=4).load_state_dict(sampler.state_dict())
+
+
+def test_subtargets_exclude_the_unseen_targets_unless_asked(floorplan1_tasks):
+    """TSE (seen targets), the default: no unseen target of a training kitchen may become a
+    sub-target; the other agents' training targets may, an agent's own target may not."""
+    types = {t: i for i, t in enumerate(train.object_types())}
+    unseen = {types[t.type] for t in floorplan1_tasks.targets if not t.seen}
+    seen = {types[t.type] for t in floorplan1_tasks.targets if t.seen}
+    default = train.build_space(["FloorPlan1"], "seen", "destination")
+    allowed = train.build_space(["FloorPlan1"], "seen", "destination", unseen_subtargets=True)
+    novel = set(np.flatnonzero(default.tse_types[0]).tolist())
+    assert novel and not novel & unseen and not novel & seen
+    assert set(np.flatnonzero(allowed.tse_types[0]).tolist()) & (unseen - seen)
+    eligible = train.subtarget_types(default)
+    for row, own in enumerate(default.target_type):
+        assert not eligible[row, own]
+        others = set(default.target_type.tolist()) - {int(own)}
+        assert others <= set(np.flatnonzero(eligible[row]).tolist())
+        assert not set(np.flatnonzero(eligible[row]).tolist()) & (unseen - seen)
+
+
+def test_each_agent_keeps_one_target(tmp_path, floorplan1_tasks):
+    """The paper's threads: agent j of a kitchen trains target j mod 7 in every episode."""
+    trainer = train.Trainer(
+        tiny_run(tmp_path), tiny_options(agents_per_kitchen=14, episode_cap=6), models.ModelConfig(), True
+    )
+    first = trainer.nav.target.copy()
+    assert sorted(first.tolist()) == sorted(list(range(7)) * 2)
+    assert first.tolist() == [trainer.space.kitchen_rows[j % 7] for j in range(14)]
+    episodes = 0
+    for _ in range(6):
+        before = trainer.stats["episodes"]
+        trainer.rollout(None)
+        episodes += trainer.stats["episodes"] - before
+        assert (trainer.nav.target == first).all()
+    assert episodes >= 14  # every agent began a new episode at least once (cap 6)
+    with pytest.raises(train.TrainError, match="7 training targets but 4 agents"):
+        train.Trainer(tiny_run(tmp_path), tiny_options(agents_per_kitchen=4), models.ModelConfig(), True)
+    drawn = train.Trainer(
+        tiny_run(tmp_path),
+        tiny_options(agents_per_kitchen=4, fixed_targets=False),
+        models.ModelConfig(),
+        True,
+    )
+    assert drawn.nav.assigned is None
 
 
 def test_tse_subtrajectories_end_at_their_subtarget_with_a_successful_stop(tmp_path, floorplan1_tasks):
-    trainer = train.Trainer(tiny_run(tmp_path), tiny_options(tse=True), models.ModelConfig(), True)
+    # short episodes (the windows are relabelled when their episode ends), a wrong Stop a no-op
+    options = tiny_options(tse=True, episode_cap=30)
+    trainer = train.Trainer(tiny_run(tmp_path), options, models.ModelConfig(), True)
     sp = trainer.space
     successes = failures = 0
-    for _ in range(40):  # rollouts until both kinds of relabelled episode were seen
+    for _ in range(60):  # rollouts until both kinds of relabelled episode were seen
         trainer.rollout(None)
         seq = trainer.subtrajectories()
         if seq is None:
@@ -303,7 +381,7 @@ def test_imitation_loss_falls_on_a_fixed_batch(tmp_path, floorplan1_tasks):
     assert losses[-1] < 0.5 * losses[0]
 
 
-def test_on_policy_labels_are_every_optimal_action(space):
+def test_dagger_labels_are_every_optimal_action(space):
     rng = np.random.default_rng(0)
     targets = rng.integers(0, len(space.target_ids), 400)
     states = rng.integers(0, space.n_states, 400)
@@ -328,10 +406,23 @@ def test_on_policy_labels_are_every_optimal_action(space):
 def test_expert_sequences_reach_every_destination(space):
     for expert in ("walk_back", "shortest"):
         seq = train.expert_sequences(space, expert, 20, np.random.default_rng(0))
+        assert len(seq.goal) == len(space.target_ids)  # one trajectory per target
         for i in range(len(seq.goal)):
             n = int(seq.mask[i].sum())
             assert seq.actions[i, n - 1] == STOP
             assert seq.states[i, n - 1] == space.destination[i]
+
+
+def test_walk_back_experts_walk_a_random_10_to_il_walk_steps(space):
+    """ "to a random start": each target's walk back is 10..il_walk steps (plus OpenObject for an open
+    destination, plus Stop), its length drawn from the run's generator."""
+    lengths = []
+    for seed in (0, 1):
+        seq = train.expert_sequences(space, "walk_back", 25, np.random.default_rng(seed))
+        opened = space.tasks[0].graph.opened[space.destination] >= 0
+        lengths.append(seq.mask.sum(1) - 1 - opened)
+    assert all(((n >= 10) & (n <= 25)).all() for n in lengths)
+    assert (lengths[0] != lengths[1]).any() and len(set(lengths[0].tolist())) > 3
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -349,11 +440,16 @@ def test_killed_training_resumes_to_the_same_weights(tmp_path, hermetic_cache):
     """kill -9 after the first checkpoint, run the same command again: it resumes from last.pt at the
     saved frame count, and ends with exactly the weights, optimiser state and counts of an unbroken run."""
     env = {**os.environ, "KGNAVBENCH_CACHE": str(hermetic_cache)}
-    whole = subprocess.run(_train(tmp_path / "a", frames=800), capture_output=True, text=True, env=env)
+    # with TSE and short episodes, so that the sub-target sampler's state must resume too; 840 frames
+    # are 24 updates of 7 agents x 5 steps
+    extra = ("tse=true", "episode_cap=30")
+    whole = subprocess.run(
+        _train(tmp_path / "a", frames=840, extra=extra), capture_output=True, text=True, env=env
+    )
     assert whole.returncode == 0, whole.stderr
     run_a = Path(whole.stdout.strip().splitlines()[-1])
 
-    cmd = _train(tmp_path / "b", frames=800)
+    cmd = _train(tmp_path / "b", frames=840, extra=extra)
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     run_b = tmp_path / "b" / "runs" / "train" / run_a.name
     deadline = time.time() + 120
@@ -362,12 +458,12 @@ def test_killed_training_resumes_to_the_same_weights(tmp_path, hermetic_cache):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     saved = train.load_checkpoint(run_b / "last.pt")["frames"]
-    assert 0 < saved < 800 and not (run_b / "finished.json").exists()
+    assert 0 < saved < 840 and not (run_b / "finished.json").exists()
     again = subprocess.run(cmd, capture_output=True, text=True, env=env)
     assert again.returncode == 0, again.stderr
     assert f"at {saved:,} frames" in again.stdout
     a, b = train.load_checkpoint(run_a / "last.pt"), train.load_checkpoint(run_b / "last.pt")
-    assert a["frames"] == b["frames"] == 800 and a["updates"] == b["updates"]
+    assert a["frames"] == b["frames"] == 840 and a["updates"] == b["updates"]
     for key in a["model"]:
         assert torch.equal(a["model"][key], b["model"][key]), key
     for sa, sb in zip(a["optimizer"]["state"].values(), b["optimizer"]["state"].values()):
