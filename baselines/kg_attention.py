@@ -24,6 +24,8 @@ class Config(TrainOptions):
     il: bool = True  # the paper's KG rows build on +IL+TSE
     tse: bool = True
     attention: bool = True  # false: the +KG row (mean over the visible objects)
+    # the softmax over "visible" (R_z nodes, masked) or "all" (every node, the paper's wording)
+    attention_nodes: str = "visible"
     kg_graph: str = "accumulated"  # or "per_step"
     gcn: int = 128  # GCN width per layer
 
@@ -37,6 +39,7 @@ def model_config(config: Config) -> ModelConfig:
         arch="lstm",
         kg="attention" if config.attention else "mean",
         kg_graph=config.kg_graph,
+        attention_nodes=config.attention_nodes,
         hidden=config.hidden,
         lstm=config.lstm,
         gcn=config.gcn,

@@ -503,12 +503,17 @@ class ModelConfig:
     history: int = 4  # ff only
     n_scenes: int = 20  # ff only: one scene-specific layer and policy/value heads per training kitchen
     pixels: bool = False  # end to end: the Encoder CNN inside the model, inputs are uint8 views
+    # attention's softmax over "visible": the R_z nodes only (masked; our reading of the paper's
+    # equations), or "all": all |V| = 125 nodes, as the paper's wording reads (a node outside R_z has
+    # Q = base, the spatial features of an empty row, so those nodes share one score)
+    attention_nodes: str = "visible"
 
     def validate(self) -> None:
         choices = {
             "arch": ("lstm", "ff"),
             "kg": ("none", "mean", "attention"),
             "kg_graph": ("accumulated", "per_step"),
+            "attention_nodes": ("visible", "all"),
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -585,15 +590,15 @@ class CoVisibility:
 class GraphTerms:
     """What the accumulated graph gives every sample alike: the GCN's node features H (125, d), Q's
     terms base (d,), D1 and D2 (125, d) (`KnowledgeGraph.q_terms`) and, with attention, the node
-    scores of the three kinds of R_z node (in the view only, in the target only, in both; (125,)
-    each). They depend on the weights and the adjacency only, so a rollout computes them once per
-    update and every step (and the backward pass, through autograd) shares them."""
+    scores of the three kinds of R_z node (in the view only, in the target only, in both) and of a
+    node outside R_z ((125,) each). They depend on the weights and the adjacency only, so a rollout
+    computes them once per update and every step (and the backward pass, through autograd) shares them."""
 
     node_features: Tensor
     base: Tensor
     d1: Tensor
     d2: Tensor
-    scores: tuple[Tensor, Tensor, Tensor] | None
+    scores: tuple[Tensor, Tensor, Tensor, Tensor] | None
 
 
 class KnowledgeGraph(nn.Module):
@@ -604,6 +609,7 @@ class KnowledgeGraph(nn.Module):
         super().__init__()
         d = cfg.gcn
         self.per_step, self.attention = cfg.kg_graph == "per_step", cfg.kg == "attention"
+        self.all_nodes = cfg.attention_nodes == "all"
         # H(0) = I, so the first layer's Â H(0) W(0) is Â W(0): W(0) is one row per type
         self.w0 = nn.Parameter(torch.randn(n_types, d) * (2 / n_types) ** 0.5)
         self.w1 = nn.Parameter(torch.randn(d, d) * (2 / d) ** 0.5)
@@ -633,9 +639,11 @@ class KnowledgeGraph(nn.Module):
     def scores(self, q: Tensor) -> Tensor:
         return self.score(F.relu(self.score_hidden(q))).squeeze(-1)
 
-    def kind_scores(self, base: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Attention scores of an R_z node in the view only, in the target only, and in both."""
-        return tuple(self.scores(torch.stack([base + d1, base + d2, base + d1 + d2])).unbind(0))
+    def kind_scores(self, base: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Attention scores of an R_z node in the view only, in the target only, in both, and of a
+        node outside R_z (its Q is base)."""
+        q = torch.stack([base + d1, base + d2, base + d1 + d2, base.expand_as(d1)])
+        return tuple(self.scores(q).unbind(0))
 
     def graph_terms(self, adjacency: Tensor) -> GraphTerms:
         """The accumulated graph's per-update terms (GraphTerms) from its (125, 125) adjacency."""
@@ -662,7 +670,7 @@ class KnowledgeGraph(nn.Module):
             base, d1, d2 = self.q_terms(u)  # d1, d2: (B, d), the same for every R_z node of a sample
             node_features = None
             if self.attention:  # (B,) each: one score for all R_z nodes of a kind in a sample
-                s_t, s_g, s_both = (s[:, None] for s in self.kind_scores(base, d1, d2))
+                s_t, s_g, s_both, s_none = (s[:, None] for s in self.kind_scores(base, d1, d2))
         else:
             if adjacency is None:
                 raise ModelError(
@@ -671,9 +679,13 @@ class KnowledgeGraph(nn.Module):
             terms = adjacency if isinstance(adjacency, GraphTerms) else self.graph_terms(adjacency)
             node_features, base, d1, d2 = terms.node_features, terms.base, terms.d1, terms.d2
             if self.attention:
-                s_t, s_g, s_both = terms.scores
+                s_t, s_g, s_both, s_none = terms.scores
         if self.attention:
-            weights = masked_softmax(t_only * s_t + g_only * s_g + both * s_both, r_z)
+            scores = t_only * s_t + g_only * s_g + both * s_both
+            if self.all_nodes:  # every node; those outside R_z add their share of base below
+                weights = torch.softmax((scores + (1 - r_z) * s_none).float(), 1)
+            else:
+                weights = masked_softmax(scores, r_z)
             attention = weights
         else:
             weights = r_z / r_z.sum(1, keepdim=True).clamp_min(1)
@@ -755,6 +767,14 @@ class ActorCritic(nn.Module):
         return x.reshape(x.shape[0], -1).to(dtype)
 
     def forward(self, view, target, view_objects, target_objects, state=None, adjacency=None, scene=None):
+        joint, extras = self.encode(view, target, view_objects, target_objects, adjacency)
+        logits, value, state = self.act(joint, state, scene)
+        return logits, value, state, extras
+
+    def encode(self, view, target, view_objects, target_objects, adjacency=None) -> tuple[Tensor, dict]:
+        """The part of the network that does not recur over time: the siamese and fusion layers (and
+        the knowledge graph's pooled Q) -> the joint input (B, J) of the LSTM or the scene layer. A
+        trainer runs it once over a whole rollout's states (T * B rows) rather than step by step."""
         cfg = self.cfg
         frames = cfg.history if cfg.arch == "ff" else 1
         x_t = self._features(view, frames)
@@ -775,17 +795,30 @@ class ActorCritic(nn.Module):
             r_g = (target_objects > 0).to(self.kg.w0.dtype)
             pooled, attention, node_features = self.kg(r_t, r_g, adjacency)
             joint = torch.cat([joint, pooled.to(joint.dtype)], 1)
-        extras = {"attention": attention, "node_features": node_features}
-        if cfg.arch == "lstm":
-            if state is None:
-                state = self.initial_state(b, joint.device)
-            h, c = self.lstm(joint, state)
-            hidden = F.relu(self.heads_hidden(h))
-            logits = self.policy(hidden[:, : cfg.head])
-            value = self.value(hidden[:, cfg.head :]).squeeze(-1)
-            return logits, value, (h, c), extras
+        return joint, {"attention": attention, "node_features": node_features}
+
+    def act(self, joint: Tensor, state=None, scene=None):
+        """One step of the recurrent part and the heads: joint (B, J) -> logits (B, 10), value (B,),
+        the new LSTM state (None for FF, whose scene-specific heads read `scene`)."""
+        if self.cfg.arch == "lstm":
+            h, c = self.recur(joint, state)
+            logits, value = self.heads(h)
+            return logits, value, (h, c)
         logits, value = self._scene_heads(joint, scene)
-        return logits, value, None, extras
+        return logits, value, None
+
+    def recur(self, joint: Tensor, state=None) -> tuple[Tensor, Tensor]:
+        """The LSTM cell: (h, c) after this step (from zeros when state is None)."""
+        if state is None:
+            state = self.initial_state(joint.shape[0], joint.device)
+        return self.lstm(joint, state)
+
+    def heads(self, h: Tensor) -> tuple[Tensor, Tensor]:
+        """Policy logits and value from LSTM outputs h (..., lstm): one product for both MLPs' first
+        layers; runs on a whole rollout's outputs at once."""
+        hidden = F.relu(self.heads_hidden(h))
+        head = self.cfg.head
+        return self.policy(hidden[..., :head]), self.value(hidden[..., head:]).squeeze(-1)
 
     def _scene_heads(self, joint: Tensor, scene: Tensor | None) -> tuple[Tensor, Tensor]:
         """Scene-specific layer and heads: the batch sorted by scene, one product per scene present

@@ -840,9 +840,10 @@ class Model:
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
             return self.net.graph_terms(adjacency)
 
-    def __call__(self, space: StateSpace, states, goals, hidden, adjacency, scene=None, history=None):
-        """One forward pass: agents in `states` (or their frame `history` (B, H) for FF) toward the
-        target images of `goals` (states)."""
+    def inputs(self, space: StateSpace, states, goals, history=None):
+        """The network's inputs for agents in `states` (or their frame `history` (..., H) for FF)
+        toward the target images of `goals` (states): view and target features (or views), and the
+        visible-type vectors R_t and R_g. Any leading shape (B or T x B)."""
         s = torch.from_numpy(np.ascontiguousarray(states))
         g = torch.from_numpy(np.ascontiguousarray(goals))
         if self.config.pixels:
@@ -851,17 +852,48 @@ class Model:
         else:
             view = space.features_t[torch.from_numpy(history) if history is not None else s]
             target = space.features_t[g]
+        return view, target, space.objects_t[s], space.objects_t[g]
+
+    def __call__(self, space: StateSpace, states, goals, hidden, adjacency, scene=None, history=None):
+        """One forward pass: agents in `states` (or their frame `history` (B, H) for FF) toward the
+        target images of `goals` (states)."""
+        view, target, r_t, r_g = self.inputs(space, states, goals, history)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
             logits, value, hidden, extras = self.net(
                 view,
                 target,
-                space.objects_t[s],
-                space.objects_t[g],
+                r_t,
+                r_g,
                 hidden,
                 adjacency=adjacency,
                 scene=None if scene is None else torch.from_numpy(np.ascontiguousarray(scene)),
             )
         return logits.float(), value.float(), hidden, extras
+
+    def unroll(self, space: StateSpace, states, goals, hidden, keep, adjacency, scene=None, history=None):
+        """The network over T steps of B agents at once, for learning: states and goals (T, B) (FF:
+        history (T, B, H)), the LSTM state before the first step, keep (T, B) 0 where an episode ended
+        at that step (the state is zeroed after it; None: no ends). The parts that do not recur run
+        once over all T x B rows, only the LSTM cell steps through time. -> logits (T, B, 10), values
+        (T, B)."""
+        n, b = states.shape
+        flat = history.reshape(n * b, -1) if history is not None else None
+        view, target, r_t, r_g = self.inputs(space, states.reshape(-1), goals.reshape(-1), flat)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+            joint, _ = self.net.encode(view, target, r_t, r_g, adjacency)
+            if self.config.arch != "lstm":
+                scenes = torch.from_numpy(np.ascontiguousarray(np.tile(scene, n)))
+                logits, values, _ = self.net.act(joint, None, scenes)
+            else:
+                joint = joint.view(n, b, -1)
+                outputs = []
+                for t in range(n):
+                    hidden = self.net.recur(joint[t], hidden)
+                    outputs.append(hidden[0])
+                    if keep is not None:
+                        hidden = _keep(hidden, keep[t])
+                logits, values = self.net.heads(torch.stack(outputs))
+        return logits.float().view(n, b, -1), values.float().view(n, b)
 
 
 class Trainer:
@@ -968,71 +1000,82 @@ class Trainer:
         self.updates += 1
 
     def rollout(self, adjacency, imitate: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """n steps of every agent with autograd on; returns the A2C loss of the rollout and, when
-        `imitate`, the cross-entropy of the expert's action on every visited state (on-policy IL)."""
+        """n steps of every agent, then the learning pass over them; returns the A2C loss of the
+        rollout and, when `imitate`, the cross-entropy of the teacher's actions on every visited state
+        (DAgger). The steps run without autograd (acting needs no graph); `Model.unroll` then replays
+        the same states with autograd, the non-recurrent layers once for all n x B rows, which costs
+        far fewer small operations than a graph built step by step."""
         opts, nav, space = self.opts, self.nav, self.space
         n, b = opts.n_steps, nav.n
-        log_probs, values, entropies = [], [], []
+        states = np.zeros((n, b), np.int64)
+        targets = np.zeros((n, b), np.int64)
+        actions = np.zeros((n, b), np.int64)
+        reached = np.zeros((n, b), np.int64)  # the state each step reached (before a new episode began)
+        histories = np.zeros((n, b, self.model_config.history), np.int64) if self.ff else None
         rewards = np.zeros((n, b), np.float32)
         dones = np.zeros((n, b), np.float32)
-        hidden = _detach(self.hidden)
+        start_hidden = hidden = _detach(self.hidden)
         scene = nav.kitchen if self.ff else None
-        visited, il_terms = [], []
-        for t in range(n):
-            goals = space.destination[nav.target]
-            logits, value, hidden, _ = self.model(
-                space, nav.state, goals, hidden, adjacency, scene, self.history
-            )
-            log_p = F.log_softmax(logits, -1)
-            if imitate:
-                il_terms.append(optimal_action_loss(log_p, *optimal_actions(space, nav.target, nav.state)))
-            probs = log_p.detach().exp()
-            action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
-            log_probs.append(log_p.gather(1, action[:, None]).squeeze(1))
-            entropies.append(-(log_p.exp() * log_p).sum(-1))
-            values.append(value)
-            a = action.numpy()
-            before = nav.state.copy()
-            r, terminated, truncated = nav.step(a)
-            if opts.wrong_stop_penalty:
-                r = r - opts.wrong_stop_penalty * ((a == STOP) & ~nav.success)
-            done = terminated | truncated
-            rewards[t], dones[t] = r, done
-            visited.append(nav.state.copy())
-            if opts.tse:
-                candidate = (a != STOP) & (space.objects[nav.state] & self.subtarget_types[nav.target]).any(1)
-                taken = probs.gather(1, action[:, None]).squeeze(1).numpy()
-                self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng)
-            self.tick += 1
-            finished = np.flatnonzero(done)
-            if len(finished):
-                self.stats["episodes"] += len(finished)
-                self.stats["successes"] += int(nav.success[finished].sum())
-                self.stats["returns"] += float(nav.episode_return[finished].sum())
-                self._new_episodes(finished)
-            hidden = _keep(hidden, torch.from_numpy(~done).float())
-            if self.ff:
-                self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
-                self.history[finished] = nav.state[finished, None]
         with torch.no_grad():
+            for t in range(n):
+                states[t], targets[t] = nav.state, nav.target
+                if self.ff:
+                    histories[t] = self.history
+                goals = space.destination[nav.target]
+                logits, _, hidden, _ = self.model(
+                    space, nav.state, goals, hidden, adjacency, scene, self.history
+                )
+                probs = F.softmax(logits, -1)
+                action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
+                a = action.numpy()
+                actions[t] = a
+                before = nav.state.copy()
+                r, terminated, truncated = nav.step(a)
+                reached[t] = nav.state
+                if opts.wrong_stop_penalty:
+                    r = r - opts.wrong_stop_penalty * ((a == STOP) & ~nav.success)
+                done = terminated | truncated
+                rewards[t], dones[t] = r, done
+                if opts.tse:
+                    candidate = (a != STOP) & (
+                        space.objects[nav.state] & self.subtarget_types[nav.target]
+                    ).any(1)
+                    taken = probs.gather(1, action[:, None]).squeeze(1).numpy()
+                    self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng)
+                self.tick += 1
+                finished = np.flatnonzero(done)
+                if len(finished):
+                    self.stats["episodes"] += len(finished)
+                    self.stats["successes"] += int(nav.success[finished].sum())
+                    self.stats["returns"] += float(nav.episode_return[finished].sum())
+                    self._new_episodes(finished)
+                hidden = _keep(hidden, torch.from_numpy(~done).float())
+                if self.ff:
+                    self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
+                    self.history[finished] = nav.state[finished, None]
             goals = space.destination[nav.target]
             _, bootstrap, _, _ = self.model(space, nav.state, goals, hidden, adjacency, scene, self.history)
-        self.hidden = _detach(hidden)
+        self.hidden = hidden
         if self.model.uses_graph:
-            self.model.covis.add(space.objects[np.concatenate(visited)])
+            self.model.covis.add(space.objects[reached.reshape(-1)])
         self.frames += n * b
         self.stats["frames"] += n * b
         self.stats["reward"] += float(rewards.sum())
-        returns = n_step_returns(torch.from_numpy(rewards), torch.from_numpy(dones), bootstrap, opts.gamma)
-        loss, _ = actor_critic_loss(
-            torch.stack(log_probs),
-            torch.stack(values),
-            torch.stack(entropies),
-            returns,
-            opts.value_weight,
-            opts.entropy,
+        # the learning pass: the same n steps again, with autograd
+        keep = torch.from_numpy(1.0 - dones)
+        logits, values = self.model.unroll(
+            space, states, space.destination[targets], start_hidden, keep, adjacency, scene, histories
         )
-        return loss, (torch.stack(il_terms).mean() if imitate else None)
+        log_p = F.log_softmax(logits, -1)
+        taken = log_p.gather(2, torch.from_numpy(actions)[..., None]).squeeze(2)
+        entropies = -(log_p.exp() * log_p).sum(-1)
+        returns = n_step_returns(torch.from_numpy(rewards), torch.from_numpy(dones), bootstrap, opts.gamma)
+        loss, _ = actor_critic_loss(taken, values, entropies, returns, opts.value_weight, opts.entropy)
+        il = None
+        if imitate:
+            optimal, known = optimal_actions(space, targets.reshape(-1), states.reshape(-1))
+            il = optimal_action_loss(log_p.reshape(n * b, -1), optimal, known).mean()
+        return loss, il
 
     def reach(self) -> int | None:
         """The curriculum's farthest start (actions from the destination) at this frame; None: off or over."""
@@ -1090,20 +1133,15 @@ class Trainer:
         """A separate pass of the model over padded sequences from a zero state: logits (L, N, 10),
         values (L, N)."""
         n, length = seq.states.shape
-        hidden = self.model.net.initial_state(n)
+        states = np.ascontiguousarray(seq.states.T)
+        goals = np.broadcast_to(seq.goal, (length, n))
+        history = None
+        if self.ff:  # the last `history` states of each step, the first state repeated before it
+            back = np.arange(length)[:, None] - np.arange(self.model_config.history)[::-1]
+            history = np.ascontiguousarray(np.transpose(seq.states[:, np.clip(back, 0, None)], (1, 0, 2)))
         scene = self.space.kitchen_of[seq.states[:, 0]] if self.ff else None
-        logits, values = [], []
-        for t in range(length):
-            history = None
-            if self.ff:
-                cols = np.clip(np.arange(t - self.model_config.history + 1, t + 1), 0, None)
-                history = seq.states[:, cols]
-            lg, v, hidden, _ = self.model(
-                self.space, seq.states[:, t], seq.goal, hidden, adjacency, scene, history
-            )
-            logits.append(lg)
-            values.append(v)
-        return torch.stack(logits), torch.stack(values)
+        hidden = self.model.net.initial_state(n)
+        return self.model.unroll(self.space, states, goals, hidden, None, adjacency, scene, history)
 
     def imitation(self, adjacency) -> tuple[torch.Tensor, int]:
         """Cross-entropy on il_batch expert trajectories drawn at random."""

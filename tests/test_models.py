@@ -110,10 +110,12 @@ def test_masked_softmax_is_zero_outside_the_mask_and_safe_on_an_empty_mask():
 # The knowledge-graph branch against a literal implementation of DESIGN.md's equations
 
 
-def literal_kg(kg: models.KnowledgeGraph, r_t, r_g, adjacency, per_step: bool, attention: bool):
+def literal_kg(
+    kg: models.KnowledgeGraph, r_t, r_g, adjacency, per_step: bool, attention: bool, all_nodes: bool = False
+):
     """Per sample: the graph (accumulated, or the clique over R_z), Â, H(0) = I and 3 GCN layers,
     H_t = R_t * H, H_g = R_g * H, Q = W'_f [ReLU(W'_s H_t), ReLU(W'_s H_g)], then the mean or the
-    masked attention over R_z."""
+    masked attention over R_z (or, all_nodes, the softmax over all 125 nodes)."""
     b, n = r_t.shape
     r_z = torch.maximum(r_t, r_g)
     pooled, weights = [], []
@@ -133,7 +135,8 @@ def literal_kg(kg: models.KnowledgeGraph, r_t, r_g, adjacency, per_step: bool, a
         )
         if attention:
             scores = kg.score(F.relu(kg.score_hidden(q))).squeeze(-1)
-            alpha = masked_softmax(scores[None], r_z[i][None])[0]
+            masked = masked_softmax(scores[None], r_z[i][None])[0]
+            alpha = torch.softmax(scores, 0) if all_nodes else masked
         else:
             alpha = r_z[i] / r_z[i].sum().clamp_min(1)
         pooled.append(alpha @ q)
@@ -142,10 +145,12 @@ def literal_kg(kg: models.KnowledgeGraph, r_t, r_g, adjacency, per_step: bool, a
 
 
 @pytest.mark.parametrize("graph", ["accumulated", "per_step"])
-@pytest.mark.parametrize("kg", ["mean", "attention"])
+@pytest.mark.parametrize("kg", ["mean", "attention", "attention over all nodes"])
 def test_closed_form_kg_branch_equals_the_literal_equations(kg, graph):
     torch.manual_seed(0)
-    cfg = ModelConfig(kg=kg, kg_graph=graph)
+    all_nodes = kg == "attention over all nodes"
+    kg = "attention" if all_nodes else kg
+    cfg = ModelConfig(kg=kg, kg_graph=graph, attention_nodes="all" if all_nodes else "visible")
     branch = make_model(cfg).kg
     # nonzero biases, so that rows outside R_t or R_g (ReLU(W'_s 0 + b) = ReLU(b)) matter
     with torch.no_grad():
@@ -155,14 +160,23 @@ def test_closed_form_kg_branch_equals_the_literal_equations(kg, graph):
     x = inputs(cfg, b=8, seed=3)
     r_t, r_g = x["view_objects"].float(), x["target_objects"].float()
     fast, attention, node_features = branch(r_t, r_g, x["adjacency"])
-    slow, alpha = literal_kg(branch, r_t, r_g, x["adjacency"], graph == "per_step", kg == "attention")
+    slow, alpha = literal_kg(
+        branch, r_t, r_g, x["adjacency"], graph == "per_step", kg == "attention", all_nodes
+    )
     assert torch.allclose(fast, slow, atol=1e-5, rtol=1e-4)
     if kg == "attention":
         assert torch.allclose(attention, alpha, atol=1e-6)
     else:
         assert attention is None
     assert (node_features is None) == (graph == "per_step")
-    assert torch.equal(fast[0], torch.zeros_like(fast[0]))  # nothing in view or target: nothing pooled
+    if all_nodes:  # every node has weight; those outside R_z share one
+        assert torch.allclose(attention.sum(1), torch.ones(8), atol=1e-5)
+        outside = ~((r_t > 0) | (r_g > 0))
+        for i in range(8):
+            w = attention[i][outside[i]]
+            assert torch.allclose(w, w[0].expand_as(w), atol=1e-7)
+    else:  # nothing in view or target: nothing pooled
+        assert torch.equal(fast[0], torch.zeros_like(fast[0]))
 
 
 @pytest.mark.parametrize("kg", ["mean", "attention"])
