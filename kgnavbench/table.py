@@ -1,40 +1,54 @@
 """Stage 10 — table: the paper's Table I from a table spec (`tables/table1.toml`).
 
 The spec names the protocol (success rule, Stop, episode caps, checkpoint selection), the presets
-(frames per row, episodes per target, seeds, kitchens, training options) and the nine rows (a plugin
-and its options each, with the paper's numbers where our sources have them). `run_table` goes row by
-row: train unless a finished run with the same config exists (an unfinished one resumes), take the
-checkpoint with the best validation SR, evaluate it on the fixed episodes (per-episode JSON lines in
-the eval run), then write the table as markdown, CSV and LaTeX. Everything it runs is a resumable run
-directory, so a killed `make table` continues where it stopped.
+(frames per row, episodes per target, seeds, kitchens, training options), the rows (a plugin and its
+options each, with the paper's numbers for the paper's rows) and the comparisons the paper draws
+between rows. `run_table` goes row by row and seed by seed: train unless a finished run with the same
+config exists (an unfinished one resumes), take the checkpoint with the best validation SR, evaluate it
+on the fixed episodes (per-episode JSON lines in the eval run), then write the table as markdown, CSV
+and LaTeX. Everything it runs is a resumable run directory, so a killed `make table` continues where it
+stopped.
 
-Cells are SPL / SR in percent per Table I column (seen kitchens / seen targets, seen kitchens / unseen
-targets, unseen kitchens) and target kind (static, actionable); "–" where there are no episodes (no
-actionable target of a training kitchen is unseen) or the method has no row (FF A3C in unseen kitchens).
-With several seeds a cell is mean ± standard deviation over seeds.
+Table I has five cells per row, each SPL and SR in percent (`CELLS`): static targets in seen kitchens
+with seen targets, seen kitchens with unseen targets and unseen kitchens; actionable targets in seen
+kitchens with seen targets and unseen kitchens (no actionable target of a training kitchen is unseen).
+A cell is the mean over seeds of each seed's episode mean, with a 95% stratified bootstrap interval
+over seeds and episodes (`intervals`), the paper's number beside it; "–" where there are no episodes or
+the paper has none (FF A3C in unseen kitchens). Under the table, each comparison of the spec gets, per
+cell and metric, the paper's difference, ours with its interval, and a verdict (holds, reversed, cannot
+tell).
 """
 
 from __future__ import annotations
 
 import csv
 import io
-import statistics
 import time
 import tomllib
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 from .env import SUCCESS_RULES
 from .evaluate import (
     COLUMN_TITLES,
-    COLUMNS,
-    KINDS,
     SEEN_CAP,
     UNSEEN_CAP,
+    EpisodeResult,
     EvalConfig,
-    EvalRun,
     evaluate,
     git_revision,
+    spl_term,
+)
+from .intervals import (
+    REPLICATES,
+    VERDICTS,
+    Bootstrap,
+    Interval,
+    difference,
+    joint_stratified_bootstrap,
+    verdict,
 )
 from .kitchens import KITCHEN_NAMES, atomic_write
 from .plugins import PluginError, available, load_plugin
@@ -43,7 +57,26 @@ from .train import train_method
 
 SPEC_FILE = Path(__file__).resolve().parent.parent / "tables" / "table1.toml"
 CHECKPOINT_RULES = ("best_val_sr",)
-CELLS = [(c, k) for c in COLUMNS for k in KINDS]  # the twelve SPL/SR pairs of a row, in order
+# Table I's five cells (column, kind), in the paper's order. The sixth pair of evaluate's columns and
+# kinds, actionable targets in seen kitchens that are unseen, never has an episode: every actionable
+# target of a training kitchen is a seen one.
+CELLS = (
+    ("seen_seen", "static"),
+    ("seen_unseen", "static"),
+    ("unseen_kitchens", "static"),
+    ("seen_seen", "actionable"),
+    ("unseen_kitchens", "actionable"),
+)
+CELL_KEYS = tuple(f"{column}/{kind}" for column, kind in CELLS)  # "column/kind", as the spec's `paper`
+CELL_TITLES = {
+    "seen_seen/static": "static seen/seen",
+    "seen_unseen/static": "static seen/unseen",
+    "unseen_kitchens/static": "static unseen kitchens",
+    "seen_seen/actionable": "actionable seen/seen",
+    "unseen_kitchens/actionable": "actionable unseen kitchens",
+}
+METRICS = ("SPL", "SR")  # in the paper's order; a `paper` pair is [SPL, SR]
+PERCENT = 100.0  # episode values are kept in percent: every mean and interval is then in percent
 
 
 class TableError(ValueError):
@@ -82,7 +115,14 @@ class Row:
     options: dict[str, str]
     unseen_kitchens: bool = True  # False: the method has no unseen-kitchens row (FF A3C)
     paper: dict[str, tuple[float, float]] = field(default_factory=dict)  # "column/kind" -> (SPL, SR)
-    paper_note: str = ""
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A comparison the paper draws: `other` (a row with a component added) should beat `base`."""
+
+    base: str
+    other: str
 
 
 @dataclass(frozen=True)
@@ -91,6 +131,7 @@ class TableSpec:
     protocol: Protocol
     presets: dict[str, Preset]
     rows: tuple[Row, ...]
+    comparisons: tuple[Comparison, ...] = ()
 
 
 def _field(where: str, table: dict, key: str, kind, default=None, required=True):
@@ -144,7 +185,7 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise TableError(f"{path}: not valid TOML ({e})") from e
-    _unknown(str(path), raw, {"protocol", "presets", "rows"})
+    _unknown(str(path), raw, {"protocol", "presets", "rows", "comparisons"})
     where = f"{path}: protocol"
     p = _field(str(path), raw, "protocol", dict)
     _unknown(where, p, {"success_rule", "stop_ends", "seen_cap", "unseen_cap", "checkpoint"})
@@ -203,7 +244,7 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
         where = f"{path}: rows[{i}]"
         if not isinstance(t, dict):
             raise TableError(f"{where} must be a table")
-        _unknown(where, t, {"name", "method", "options", "unseen_kitchens", "paper", "paper_note"})
+        _unknown(where, t, {"name", "method", "options", "unseen_kitchens", "paper"})
         method = _field(where, t, "method", str)
         if method not in methods:
             raise TableError(
@@ -211,11 +252,11 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
             )
         paper = {}
         for cell, pair in _field(where, t, "paper", dict, {}, required=False).items():
-            column, _, kind = cell.partition("/")
-            ok = column in COLUMNS and kind in KINDS and isinstance(pair, list) and len(pair) == 2
+            ok = cell in CELL_KEYS and isinstance(pair, list) and len(pair) == 2
             if not ok or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pair):
                 raise TableError(
-                    f"{where}.paper.{cell!r} must be COLUMN/KIND = [SPL, SR] (columns {COLUMNS})"
+                    f"{where}.paper.{cell!r} = {pair!r} must be CELL = [SPL, SR], a CELL one of Table I's "
+                    f"{', '.join(CELL_KEYS)}"
                 )
             paper[cell] = (float(pair[0]), float(pair[1]))
         rows.append(
@@ -225,7 +266,6 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
                 options=_options(f"{where}.options", _field(where, t, "options", dict, {}, required=False)),
                 unseen_kitchens=_field(where, t, "unseen_kitchens", bool, True, required=False),
                 paper=paper,
-                paper_note=_field(where, t, "paper_note", str, "", required=False),
             )
         )
     if not rows:
@@ -233,7 +273,29 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
     names = [r.name for r in rows]
     if len(set(names)) != len(names):
         raise TableError(f"{path}: rows: a row name is used twice")
-    return TableSpec(path, protocol, presets, tuple(rows))
+    comparisons = _comparisons(path, _field(str(path), raw, "comparisons", list, [], required=False), names)
+    return TableSpec(path, protocol, presets, tuple(rows), comparisons)
+
+
+def _comparisons(path: Path, tables: list, row_names: list[str]) -> tuple[Comparison, ...]:
+    """`[[comparisons]]`: each {base, other}, two different rows of the spec, no pair twice."""
+    out: list[Comparison] = []
+    for i, t in enumerate(tables):
+        where = f"{path}: comparisons[{i}]"
+        if not isinstance(t, dict):
+            raise TableError(f"{where} must be a table with base and other")
+        _unknown(where, t, {"base", "other"})
+        comparison = Comparison(base=_field(where, t, "base", str), other=_field(where, t, "other", str))
+        for key in ("base", "other"):
+            name = getattr(comparison, key)
+            if name not in row_names:
+                raise TableError(f"{where}.{key} = {name!r} is not a row name (rows: {', '.join(row_names)})")
+        if comparison.base == comparison.other:
+            raise TableError(f"{where}: base and other are the same row {comparison.base!r}")
+        if comparison in out:
+            raise TableError(f"{where}: {comparison.other!r} against {comparison.base!r} is there twice")
+        out.append(comparison)
+    return tuple(out)
 
 
 def load_spec(path: Path | str = SPEC_FILE) -> TableSpec:
@@ -248,10 +310,37 @@ def load_spec(path: Path | str = SPEC_FILE) -> TableSpec:
 # Running the rows
 
 
+class EpisodeValue(NamedTuple):
+    """One episode as a cell's statistics need it: its stratum (kitchen/target: the bootstrap resamples
+    episodes within targets) and its success and SPL term, both in percent (0 or 100; 100 * S * L /
+    max(P, L))."""
+
+    stratum: str
+    success: float
+    spl: float
+
+    def value(self, metric: str) -> float:
+        """The episode's value for one of METRICS."""
+        return {"SPL": self.spl, "SR": self.success}[metric]
+
+
+def cell_episodes(results: list[EpisodeResult]) -> dict[str, list[EpisodeValue]]:
+    """One evaluation's episodes per Table I cell ("column/kind" -> values; a cell without episodes
+    has an empty list). Episodes of no cell (validation kitchens) are left out."""
+    cells: dict[str, list[EpisodeValue]] = {key: [] for key in CELL_KEYS}
+    for r in results:
+        key = f"{r.column}/{r.kind}"
+        if key in cells:
+            cells[key].append(
+                EpisodeValue(f"{r.kitchen}/{r.target}", PERCENT * r.success, PERCENT * spl_term(r))
+            )
+    return cells
+
+
 @dataclass
 class RowResult:
     row: Row
-    seeds: list[dict[str, tuple[float, float] | None]]  # per seed: "column/kind" -> (SPL, SR) or None
+    episodes: list[dict[str, list[EpisodeValue]]]  # per seed: "column/kind" -> its episodes
     train_runs: list[str]
     eval_runs: list[str]
     seconds: float
@@ -264,14 +353,13 @@ class TableResult:
     rows: list[RowResult]
     seconds: float
     git_revision: str
+    _statistics: TableStatistics | None = field(default=None, init=False, repr=False, compare=False)
 
-
-def _cells(run: EvalRun) -> dict[str, tuple[float, float] | None]:
-    out = {}
-    for column, kind in CELLS:
-        m = run.summary.get((column, kind))
-        out[f"{column}/{kind}"] = None if m is None or m.episodes == 0 else (m.spl, m.sr)
-    return out
+    def statistics(self) -> TableStatistics:
+        """The cells' intervals and the comparisons' verdicts, computed once (the writers share them)."""
+        if self._statistics is None:
+            self._statistics = table_statistics(self)
+        return self._statistics
 
 
 def eval_kitchens(preset: Preset, row: Row) -> tuple[str, ...]:
@@ -340,7 +428,6 @@ def run_table(
     preset = spec.presets[preset_name]
     runs_dir = Path(runs_dir)
     start = time.perf_counter()
-    results = []
     jobs = [(row, seed) for row in spec.rows for seed in range(preset.seeds)]
     per_row: dict[str, RowResult] = {}
     kinds = [_trains(row) for row, _ in jobs]
@@ -361,7 +448,7 @@ def run_table(
             else len(run.resumed) == len(run.config.kitchen_list())
         )
         result = per_row.setdefault(row.name, RowResult(row, [], [], [], 0.0))
-        result.seeds.append(_cells(run))
+        result.episodes.append(cell_episodes(run.results))
         result.train_runs.append(str(run_dir) if run_dir else "")
         result.eval_runs.append(str(run.directory))
         result.seconds += time.perf_counter() - t0
@@ -372,114 +459,347 @@ def run_table(
 
 
 # ------------------------------------------------------------------------------------------------
+# Statistics: the cells' intervals and the comparisons' verdicts
+
+
+@dataclass(frozen=True)
+class CellStatistics:
+    """One row's cell for one metric (SPL or SR), in percent."""
+
+    seed_means: tuple[float | None, ...]  # each seed's episode mean; None: the seed has no episodes here
+    episodes_per_seed: tuple[int, ...]
+    bootstrap: Bootstrap | None  # None: no episodes in the cell
+    interval: Interval | None  # the mean over seeds and its 95% interval
+
+
+@dataclass(frozen=True)
+class ComparisonStatistics:
+    """One comparison in one cell for one metric: other - base, the paper's and ours, in points."""
+
+    comparison: Comparison
+    cell: str
+    metric: str
+    paper_base: float | None
+    paper_other: float | None
+    paper_difference: float | None  # None: the paper has the cell for one of the rows only, or neither
+    ours: Interval | None  # None: one of the rows has no episodes in the cell
+    verdict: str | None  # intervals.verdict; None where `ours` is None
+
+
+@dataclass(frozen=True)
+class TableStatistics:
+    cells: dict[tuple[str, str, str], CellStatistics]  # (row name, "column/kind", metric)
+    comparisons: list[ComparisonStatistics]
+
+
+def bootstrap_seed(row_name: str, cell: str) -> tuple[int, int]:
+    """Each row and cell its own random stream, named by the row's name (not its position: a row added
+    or moved changes no other row's interval). Two rows' streams differ, so the bootstraps that a
+    comparison differences are independent."""
+    return zlib.crc32(row_name.encode()), CELL_KEYS.index(cell)
+
+
+def paper_value(row: Row, cell: str, metric: str) -> float | None:
+    pair = row.paper.get(cell)
+    return None if pair is None else pair[METRICS.index(metric)]
+
+
+def cell_statistics(row_result: RowResult, cell: str, reps: int = REPLICATES) -> dict[str, CellStatistics]:
+    """A cell of a row, per metric: each seed's episode mean, and the mean over seeds with its 95%
+    stratified bootstrap interval over the seeds that have episodes in the cell (all of them or none:
+    every seed evaluates the same fixed episodes). SPL and SR come from the same resamples."""
+    per_seed = [
+        [(e.stratum, tuple(e.value(metric) for metric in METRICS)) for e in seed[cell]]
+        for seed in row_result.episodes
+    ]
+    counts = tuple(len(episodes) for episodes in per_seed)
+    present = [episodes for episodes in per_seed if episodes]
+    boots = (
+        joint_stratified_bootstrap(present, reps, bootstrap_seed(row_result.row.name, cell))
+        if present
+        else [None] * len(METRICS)
+    )
+    out = {}
+    for m, (metric, boot) in enumerate(zip(METRICS, boots)):
+        means = tuple(sum(values[m] for _, values in e) / len(e) if e else None for e in per_seed)
+        out[metric] = CellStatistics(means, counts, boot, boot.interval() if boot else None)
+    return out
+
+
+def table_statistics(result: TableResult, reps: int = REPLICATES) -> TableStatistics:
+    """Every row's cells and every comparison of the spec: a comparison's interval differences the two
+    rows' own bootstrap replicates (independent streams), so it agrees with the cells it compares."""
+    cells = {
+        (r.row.name, cell, metric): statistics
+        for r in result.rows
+        for cell in CELL_KEYS
+        for metric, statistics in cell_statistics(r, cell, reps).items()
+    }
+    rows = {r.row.name: r.row for r in result.rows}
+    comparisons = []
+    for comparison in result.spec.comparisons:
+        if comparison.base not in rows or comparison.other not in rows:
+            continue  # a result built without one of the rows (the spec checked the names)
+        for cell in CELL_KEYS:
+            for metric in METRICS:
+                paper_base = paper_value(rows[comparison.base], cell, metric)
+                paper_other = paper_value(rows[comparison.other], cell, metric)
+                paper_difference = None
+                if paper_base is not None and paper_other is not None:
+                    # as printed, to the paper's 2 decimals (+ 0.0: no "-0.00")
+                    paper_difference = round(paper_other - paper_base, 2) + 0.0
+                base = cells[(comparison.base, cell, metric)].bootstrap
+                other = cells[(comparison.other, cell, metric)].bootstrap
+                ours = difference(base, other) if base is not None and other is not None else None
+                comparisons.append(
+                    ComparisonStatistics(
+                        comparison,
+                        cell,
+                        metric,
+                        paper_base,
+                        paper_other,
+                        paper_difference,
+                        ours,
+                        verdict(paper_difference, ours.low, ours.high) if ours else None,
+                    )
+                )
+    return TableStatistics(cells, comparisons)
+
+
+# ------------------------------------------------------------------------------------------------
 # Writing the table
 
-
-def combine(values: list[tuple[float, float] | None]) -> tuple[str, str]:
-    """(SPL, SR) text of one cell over seeds: '12.34', or '12.34 ± 1.20' with several seeds; '–' for none."""
-    present = [v for v in values if v is not None]
-    if not present:
-        return "–", "–"
-    out = []
-    for i in (0, 1):
-        xs = [v[i] for v in present]
-        mean = sum(xs) / len(xs)
-        out.append(f"{mean:.2f}" if len(xs) == 1 else f"{mean:.2f} ± {statistics.stdev(xs):.2f}")
-    return out[0], out[1]
+NONE = "–"  # no episodes in the cell, or not in the paper
 
 
-def _header() -> list[str]:
-    short = {"seen_seen": "seen/seen", "seen_unseen": "seen/unseen", "unseen_kitchens": "unseen kitchens"}
-    head = ["method"]
-    for column, kind in CELLS:
-        head += [f"{short[column]} {kind} SPL", f"{short[column]} {kind} SR"]
-    return head
+def interval_text(interval: Interval | None, signed: bool = False) -> str:
+    """'52.6 [48.1, 57.0]' (a difference: '+4.1 [-0.3, +8.2]'); '–' for none."""
+    if interval is None:
+        return NONE
+    f = "+.1f" if signed else ".1f"
+    estimate, low, high = (x + 0.0 for x in (interval.estimate, interval.low, interval.high))  # no -0.0
+    return f"{estimate:{f}} [{low:{f}}, {high:{f}}]"
 
 
-def table_rows(result: TableResult) -> list[list[str]]:
-    """One line per method (ours), and one per method with the paper's numbers where the spec has any."""
-    lines = []
-    for r in result.rows:
-        cells = [r.row.name]
-        for column, kind in CELLS:
-            cells += combine([s[f"{column}/{kind}"] for s in r.seeds])
-        lines.append(cells)
-        if r.row.paper:
-            paper = [f"{r.row.name} (paper)"]
-            for column, kind in CELLS:
-                pair = r.row.paper.get(f"{column}/{kind}")
-                paper += [f"{pair[0]:.2f}", f"{pair[1]:.2f}"] if pair else ["–", "–"]
-            lines.append(paper)
-    return lines
+def paper_text(value: float | None, signed: bool = False) -> str:
+    """The paper's number as printed (2 decimals); '–' where it has none."""
+    return NONE if value is None else f"{value:{'+.2f' if signed else '.2f'}}"
+
+
+def _seeds_text(n: int) -> str:
+    return f"{n} seed{'' if n == 1 else 's'}"
 
 
 def caption(result: TableResult) -> str:
     p, pr = result.preset, result.spec.protocol
     rule = "Stop at the destination" if pr.success_rule == "destination" else "Stop with the target visible"
     stop = "Stop ends the episode" if pr.stop_ends else "a wrong Stop is a no-op"
-    notes = "; ".join(
-        f"{r.row.name}: the paper prints {r.row.paper_note}" for r in result.rows if r.row.paper_note
-    )
+    one_seed = " (one seed: the interval covers episodes only)" if p.seeds == 1 else ""
     return (
         f"Table I regenerated by kgnavbench, preset {p.name!r} ({p.description}): {p.frames:,} training "
-        f"frames per learned row, {p.episodes} of the 100 fixed episodes per target, {p.seeds} seed(s)"
-        f"{' (mean ± std)' if p.seeds > 1 else ''}; success = {rule}, {stop}; caps {pr.seen_cap} "
-        f"(seen kitchens, seen targets) / {pr.unseen_cap}; the checkpoint with the best validation SR. "
-        f"Cells: SPL / SR in %; '–': no episodes in the cell. Git {result.git_revision}, "
-        f"wall time {result.seconds / 60:.1f} min." + (f" {notes}." if notes else "")
+        f"frames per learned row, {p.episodes} of the 100 fixed episodes per target, {_seeds_text(p.seeds)}; "
+        f"success = {rule}, {stop}; caps {pr.seen_cap} (seen kitchens, seen targets) / {pr.unseen_cap}; "
+        f"the checkpoint with the best validation SR. Cells: SPL and SR in %, ours as the mean over "
+        f"{_seeds_text(p.seeds)}, 95% stratified bootstrap interval over seeds and episodes ({REPLICATES} "
+        f"replicates){one_seed}; the paper's as printed on the line '(paper)'; seen/seen and seen/unseen: "
+        f"seen kitchens with seen or unseen targets; '–': no episodes in the cell, or none in the paper. "
+        f"Git {result.git_revision}, wall time {result.seconds / 60:.1f} min."
     )
+
+
+def _header() -> list[str]:
+    return ["method"] + [f"{CELL_TITLES[cell]} {metric}" for cell in CELL_KEYS for metric in METRICS]
+
+
+def table_rows(result: TableResult) -> list[list[str]]:
+    """Two lines per row: ours (mean [95% interval]) and the paper's ('–' for a row that is ours)."""
+    stats = result.statistics()
+    lines = []
+    for r in result.rows:
+        name = r.row.name
+        ours = [interval_text(stats.cells[(name, c, m)].interval) for c in CELL_KEYS for m in METRICS]
+        paper = [paper_text(paper_value(r.row, c, m)) for c in CELL_KEYS for m in METRICS]
+        lines += [[name, *ours], [f"{name} (paper)", *paper]]
+    return lines
+
+
+ABLATION_INTRO = (
+    "For each comparison the paper draws and each cell: other − base in percentage points, the paper's "
+    "(as printed) and ours (the difference of the two rows' means, with the 95% interval of the "
+    "differences of their independent bootstrap replicates), and the verdict: holds (our interval lies "
+    "on the paper's side of 0), reversed (on the other side), cannot tell (it contains 0, or the "
+    "paper's difference is 0 or missing); '–': no episodes."
+)
+
+
+def _ablation_header() -> list[str]:
+    head = ["comparison", "cell"]
+    for metric in METRICS:
+        head += [f"{metric} paper", f"{metric} ours", f"{metric} verdict"]
+    return head
+
+
+def ablation_rows(result: TableResult) -> list[list[str]]:
+    """One line per comparison and cell: per metric the paper's difference, ours and the verdict."""
+    by_key = {(s.comparison, s.cell, s.metric): s for s in result.statistics().comparisons}
+    lines = []
+    for comparison in result.spec.comparisons:
+        for cell in CELL_KEYS:
+            if (comparison, cell, METRICS[0]) not in by_key:
+                continue
+            line = [f"{comparison.other} − {comparison.base}", CELL_TITLES[cell]]
+            for metric in METRICS:
+                s = by_key[(comparison, cell, metric)]
+                line += [
+                    paper_text(s.paper_difference, signed=True),
+                    interval_text(s.ours, signed=True),
+                    s.verdict or NONE,
+                ]
+            lines.append(line)
+    return lines
+
+
+def verdict_counts(result: TableResult) -> str:
+    """'SPL: holds 3, reversed 1, cannot tell 6; SR: ...' over every comparison and cell."""
+    parts = []
+    for metric in METRICS:
+        verdicts = [s.verdict for s in result.statistics().comparisons if s.metric == metric and s.verdict]
+        counts = ", ".join(f"{v} {verdicts.count(v)}" for v in VERDICTS)
+        parts.append(f"{metric}: {counts}")
+    return "; ".join(parts)
+
+
+def _markdown_table(head: list[str], rows: list[list[str]], numeric: set[int]) -> list[str]:
+    """A markdown table; the columns numbered in `numeric` right-aligned."""
+    align = "|" + "".join("---:|" if i in numeric else "---|" for i in range(len(head)))
+    return ["| " + " | ".join(head) + " |", align] + ["| " + " | ".join(row) + " |" for row in rows]
 
 
 def to_markdown(result: TableResult) -> str:
-    head = _header()
     lines = [f"**{caption(result)}**", ""]
-    lines.append("| " + " | ".join(head) + " |")
-    lines.append("|---" + "|---:" * (len(head) - 1) + "|")
-    lines += ["| " + " | ".join(row) + " |" for row in table_rows(result)]
+    head = _header()
+    lines += _markdown_table(head, table_rows(result), numeric=set(range(1, len(head))))
+    if result.spec.comparisons:
+        lines += ["", f"**Ablation check.** {ABLATION_INTRO}", ""]
+        head = _ablation_header()  # comparison, cell, then per metric: paper, ours, verdict
+        numbers = {i for i in range(2, len(head)) if (i - 2) % 3 != 2}
+        lines += _markdown_table(head, ablation_rows(result), numeric=numbers)
+        lines += ["", f"Verdicts: {verdict_counts(result)}."]
     return "\n".join(lines) + "\n"
 
 
+def _number(value: float | None) -> str:
+    """A CSV number: 6 significant digits; empty for none (never NaN)."""
+    return "" if value is None else f"{value + 0.0:.6g}"  # + 0.0: 0, never -0
+
+
 def to_csv(result: TableResult) -> str:
+    """Tidy: one line per row, cell and metric; each seed's own value in seed_0, seed_1, ..."""
+    stats = result.statistics()
+    seeds = max((len(r.episodes) for r in result.rows), default=0)
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(["# " + caption(result)])
-    writer.writerow(_header())
-    writer.writerows(table_rows(result))
+    head = ["row", "method", "column", "kind", "metric", "mean", "ci_low", "ci_high", "paper"]
+    writer.writerow(head + ["episodes_per_seed"] + [f"seed_{s}" for s in range(seeds)])
+    for r in result.rows:
+        for cell, (column, kind) in zip(CELL_KEYS, CELLS):
+            for metric in METRICS:
+                s = stats.cells[(r.row.name, cell, metric)]
+                i = s.interval
+                counts = sorted(set(s.episodes_per_seed))
+                writer.writerow(
+                    [r.row.name, r.row.method, column, kind, metric]
+                    + [_number(i.estimate if i else None), _number(i.low if i else None)]
+                    + [_number(i.high if i else None), _number(paper_value(r.row, cell, metric))]
+                    # every seed runs the same episodes: one count (several, ';'-joined, would be a bug)
+                    + [";".join(str(n) for n in counts)]
+                    + [_number(m) for m in s.seed_means]
+                    + [""] * (seeds - len(s.seed_means))
+                )
+    return out.getvalue()
+
+
+def to_ablation_csv(result: TableResult) -> str:
+    """Tidy: one line per comparison, cell and metric: the paper's two values and difference, ours with
+    its 95% interval, the verdict (empty where we have no episodes)."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["# Ablation check: " + ABLATION_INTRO + " " + caption(result)])
+    writer.writerow(
+        ["base", "other", "column", "kind", "metric", "paper_base", "paper_other", "paper_difference"]
+        + ["difference", "ci_low", "ci_high", "verdict"]
+    )
+    for s in result.statistics().comparisons:
+        column, _, kind = s.cell.partition("/")
+        i = s.ours
+        writer.writerow(
+            [s.comparison.base, s.comparison.other, column, kind, s.metric]
+            + [_number(s.paper_base), _number(s.paper_other), _number(s.paper_difference)]
+            + [_number(i.estimate if i else None), _number(i.low if i else None)]
+            + [_number(i.high if i else None), s.verdict or ""]
+        )
     return out.getvalue()
 
 
 def _tex_escape(text: str) -> str:
     for a, b in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#")):
         text = text.replace(a, b)
-    return text.replace("±", r"$\pm$").replace("–", "--")
+    if not any(ch.isalpha() for ch in text):
+        text = text.replace("-", "$-$")  # a number's minus sign, not a hyphen
+    return text.replace("−", "$-$").replace("–", "--")
+
+
+def _tex_tabular(spec: str, head: list[str], rows: list[list[str]]) -> list[str]:
+    lines = [r"\resizebox{\textwidth}{!}{%", r"\begin{tabular}{" + spec + "}", r"\hline"]
+    lines += head + [r"\hline"]
+    lines += [" & ".join(_tex_escape(c) for c in row) + r" \\" for row in rows]
+    return lines + [r"\hline", r"\end{tabular}}"]
 
 
 def to_latex(result: TableResult) -> str:
-    groups = " & ".join(rf"\multicolumn{{4}}{{c}}{{{COLUMN_TITLES[c]}}}" for c in COLUMNS)
-    kinds = " & ".join(r"\multicolumn{2}{c}{" + k + "}" for _ in COLUMNS for k in KINDS)
+    """Table I with intervals and the paper's numbers, then the ablation check (needs graphicx)."""
+    kinds = [("static", 3), ("actionable", 2)]  # CELLS: three static cells, then two actionable
+    groups = " & ".join(rf"\multicolumn{{{2 * n}}}{{c}}{{{kind} targets}}" for kind, n in kinds)
+    columns = " & ".join(rf"\multicolumn{{2}}{{c}}{{{COLUMN_TITLES[column]}}}" for column, _ in CELLS)
+    head = [rf" & {groups} \\", rf" & {columns} \\", " & " + " & ".join(["SPL & SR"] * len(CELLS)) + r" \\"]
     lines = [
+        "% needs \\usepackage{graphicx} (\\resizebox)",
         r"\begin{table*}",
         r"\centering",
         r"\caption{" + _tex_escape(caption(result)) + "}",
-        r"\begin{tabular}{l" + "rr" * len(CELLS) + "}",
-        r"\hline",
-        rf" & {groups} \\",
-        rf" & {kinds} \\",
-        " & " + " & ".join(["SPL & SR"] * len(CELLS)) + r" \\",
-        r"\hline",
     ]
-    lines += [" & ".join(_tex_escape(c) for c in row) + r" \\" for row in table_rows(result)]
-    lines += [r"\hline", r"\end{tabular}", r"\end{table*}"]
+    lines += _tex_tabular("l" + "rr" * len(CELLS), head, table_rows(result))
+    lines.append(r"\end{table*}")
+    if result.spec.comparisons:
+        metrics = " & ".join(rf"\multicolumn{{3}}{{c}}{{{metric}}}" for metric in METRICS)
+        head = [
+            rf" & & {metrics} \\",
+            "comparison & cell & " + " & ".join(["paper & ours & verdict"] * len(METRICS)) + r" \\",
+        ]
+        lines += [
+            r"\begin{table*}",
+            r"\centering",
+            r"\caption{Ablation check. " + _tex_escape(ABLATION_INTRO) + "}",
+        ]
+        lines += _tex_tabular("ll" + "rrl" * len(METRICS), head, ablation_rows(result))
+        lines.append(r"\end{table*}")
     return "\n".join(lines) + "\n"
 
 
 def write_table(result: TableResult, out_dir: Path | str) -> list[Path]:
-    """tables/table1.{md,csv,tex} for the quick preset, table1-<preset>.* for the others."""
+    """tables/table1.{md,csv,tex} and table1-ablation.csv for the quick preset, table1-<preset>.* and
+    table1-<preset>-ablation.csv for the others."""
     out_dir = Path(out_dir)
     stem = "table1" if result.preset.name == "quick" else f"table1-{result.preset.name}"
     paths = []
-    for suffix, text in ((".md", to_markdown(result)), (".csv", to_csv(result)), (".tex", to_latex(result))):
-        path = out_dir / f"{stem}{suffix}"
+    for name, text in (
+        (f"{stem}.md", to_markdown(result)),
+        (f"{stem}.csv", to_csv(result)),
+        (f"{stem}-ablation.csv", to_ablation_csv(result)),
+        (f"{stem}.tex", to_latex(result)),
+    ):
+        path = out_dir / name
         try:
             atomic_write(path, text)
         except OSError as e:

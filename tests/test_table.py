@@ -4,6 +4,7 @@ training to the written table, resumed after a kill."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import os
 import signal
 import subprocess
@@ -14,44 +15,61 @@ import pytest
 
 from kgnavbench import train
 from kgnavbench.cli import main
+from kgnavbench.evaluate import EpisodeResult
 from kgnavbench.table import (
+    CELL_KEYS,
     CELLS,
     SPEC_FILE,
+    Comparison,
+    EpisodeValue,
     Preset,
-    Row,
     RowResult,
     TableError,
     TableResult,
-    combine,
+    cell_episodes,
     load_spec,
     parse_spec,
     time_left,
+    to_ablation_csv,
     to_csv,
     to_latex,
     to_markdown,
+    write_table,
 )
 
+PAPER_ROWS = ["Random walk", "IL", "LSTM A3C", "FF A3C", "+IL", "+TSE", "+IL+TSE", "+KG", "+KG+Attention"]
 
-def test_the_committed_spec_has_the_nine_rows_and_three_presets():
+
+def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
     spec = load_spec()
-    assert [r.name for r in spec.rows] == [
-        "Random walk",
-        "IL",
-        "FF A3C",
-        "LSTM A3C",
-        "+IL",
-        "+TSE",
-        "+IL+TSE",
-        "+KG",
-        "+KG+Attention",
-    ]
+    names = [r.name for r in spec.rows]
+    assert names[:9] == PAPER_ROWS
+    assert names[9:] == ["IL, DAgger with a shortest-path teacher", "+IL+TSE, TSE (targets)"]
     assert {"smoke", "quick", "paper"} <= set(spec.presets)
     assert spec.presets["paper"].frames == 40_000_000 and spec.presets["paper"].episodes == 100
     assert spec.protocol.success_rule == "destination" and spec.protocol.stop_ends
-    assert not [r for r in spec.rows if r.name == "FF A3C"][0].unseen_kitchens
+    rows = {r.name: r for r in spec.rows}
+    assert not rows["FF A3C"].unseen_kitchens
+    # the paper's Table I as printed, five cells of [SPL, SR] per row; FF A3C has no unseen kitchens
+    assert all(set(rows[name].paper) == set(CELL_KEYS) for name in PAPER_ROWS if name != "FF A3C")
+    assert set(rows["FF A3C"].paper) == {"seen_seen/static", "seen_unseen/static", "seen_seen/actionable"}
+    assert rows["+KG+Attention"].paper["seen_seen/static"] == (52.58, 98.44)
+    assert rows["+KG+Attention"].paper["unseen_kitchens/static"] == (7.2, 41.09)
+    assert rows["Random walk"].paper["unseen_kitchens/actionable"] == (0.08, 3.25)
+    assert not rows["+IL+TSE, TSE (targets)"].paper
+    assert spec.comparisons == (
+        Comparison("LSTM A3C", "+IL"),
+        Comparison("LSTM A3C", "+TSE"),
+        Comparison("+IL", "+IL+TSE"),
+        Comparison("+TSE", "+IL+TSE"),
+        Comparison("+IL+TSE", "+KG"),
+        Comparison("+KG", "+KG+Attention"),
+    )
 
 
 GOOD = SPEC_FILE.read_text()
+A_COMPARISON = '[[comparisons]]\nbase = "+KG"\nother = "+KG+Attention"\n'
+assert A_COMPARISON in GOOD
 
 
 @pytest.mark.parametrize(
@@ -66,18 +84,55 @@ GOOD = SPEC_FILE.read_text()
         (lambda t: t.replace('checkpoint = "best_val_sr"', 'checkpoint = "last"'), "protocol.checkpoint"),
         (lambda t: t.replace("frames = 2_000_000", "frames = -5"), "presets.quick.frames"),
         (lambda t: t.replace("frames = 2_000_000", 'frames = "lots"'), "presets.quick.frames"),
-        (lambda t: t.replace("episodes = 2\n", "episodes = 101\n"), "presets.quick.episodes"),
+        (lambda t: t.replace("episodes = 20\n", "episodes = 101\n"), "presets.quick.episodes"),
         (lambda t: t.replace('train_kitchens = ["FloorPlan1"]', 'train_kitchens = ["Kitchen9"]'), "Kitchen9"),
-        (lambda t: t.replace('method = "ff_a3c"', 'method = "ff_a4c"'), "rows[2].method"),
+        (lambda t: t.replace('method = "ff_a3c"', 'method = "ff_a4c"'), "rows[3].method"),
         (lambda t: t.replace('name = "IL"', 'name = "Random walk"'), "row name is used twice"),
         (lambda t: t.replace("[protocol]", "[protocol]\ncolour = 3"), "unknown field(s) colour"),
         (
-            lambda t: t.replace("options = {}\npaper_note", "options = { x = [1] }\npaper_note"),
+            lambda t: t.replace(
+                'method = "random_walk"\noptions = {}', 'method = "random_walk"\noptions = { x = [1] }'
+            ),
             "rows[0].options.x",
         ),
         (
             lambda t: t + "\n[[rows]]\nname = 'x'\nmethod = 'oracle'\npaper = { 'seen_seen/static' = 3 }\n",
-            "paper",
+            "rows[11].paper.'seen_seen/static'",
+        ),
+        # the cell no target fills is not one of Table I's five
+        (
+            lambda t: (
+                t
+                + "\n[[rows]]\nname = 'x'\nmethod = 'oracle'\npaper = { 'seen_unseen/actionable' = [1, 2] }\n"
+            ),
+            "rows[11].paper.'seen_unseen/actionable'",
+        ),
+        # the random walk's numbers are in `paper` now: a note beside them is an unknown field
+        (
+            lambda t: t.replace('method = "random_walk"\n', 'method = "random_walk"\npaper_note = "1 / 2"\n'),
+            "rows[0] has unknown field(s) paper_note",
+        ),
+        (
+            lambda t: t.replace('base = "+KG"\n', 'base = "+GK"\n'),
+            "comparisons[5].base = '+GK' is not a row name",
+        ),
+        (lambda t: t.replace('other = "+KG+Attention"\n', ""), "comparisons[5].other is missing"),
+        (
+            lambda t: t.replace('other = "+KG+Attention"\n', "other = 7\n"),
+            "comparisons[5].other = 7 must be str",
+        ),
+        (
+            lambda t: t.replace('other = "+KG+Attention"\n', 'other = "+KG"\n'),
+            "comparisons[5]: base and other",
+        ),
+        (lambda t: t + "\n" + A_COMPARISON, "comparisons[6]: '+KG+Attention' against '+KG' is there twice"),
+        (
+            lambda t: t.replace('other = "+KG+Attention"\n', 'other = "+KG+Attention"\nwhy = 1\n'),
+            "comparisons[5] has unknown field(s) why",
+        ),
+        (
+            lambda t: "comparisons = 3\n" + t[: t.index("# The comparisons the paper draws")],
+            "comparisons = 3 must be list",
         ),
         (lambda t: t.replace("[protocol]", "[protocol"), "not valid TOML"),
     ],
@@ -91,34 +146,14 @@ def test_a_bad_spec_gets_one_clear_line_naming_the_field(change, named):
     assert "\n" not in message and "tables/bad.toml" in message and named in message, message
 
 
+def test_a_spec_without_comparisons_is_fine():
+    text = GOOD[: GOOD.index("# The comparisons the paper draws")]
+    assert "[[comparisons]]" not in text and parse_spec(text).comparisons == ()
+
+
 def test_a_missing_spec_file():
     with pytest.raises(TableError, match="nope.toml"):
         load_spec("nope.toml")
-
-
-def test_cells_combine_over_seeds():
-    assert combine([(10.0, 20.0)]) == ("10.00", "20.00")
-    assert combine([(10.0, 20.0), (20.0, 40.0)]) == ("15.00 ± 7.07", "30.00 ± 14.14")
-    assert combine([None]) == ("–", "–")
-    assert combine([None, (1.0, 2.0)]) == ("1.00", "2.00")
-
-
-def fake_result(seeds: int = 1) -> TableResult:
-    spec = load_spec()
-    preset = Preset("quick", "a test", 1000, 2, seeds, (), (), {})
-    cells = {f"{c}/{k}": (12.5, 25.0) for c, k in CELLS}
-    cells["seen_unseen/actionable"] = None
-    rows = [
-        RowResult(Row("LSTM A3C", "lstm_a3c", {}), [cells] * seeds, ["r"], ["e"], 1.0),
-        RowResult(
-            Row("Random walk", "random_walk", {}, paper={"seen_seen/static": (0.5, 1.5)}, paper_note="1 / 2"),
-            [dict.fromkeys(cells)] * seeds,
-            [""],
-            ["e"],
-            1.0,
-        ),
-    ]
-    return TableResult(spec, preset, rows, 90.0, "abc123")
 
 
 def test_time_left_per_kind_of_row():
@@ -130,32 +165,251 @@ def test_time_left_per_kind_of_row():
     assert time_left([(True, 60.0)], []) == 0.0
 
 
-def test_the_writers_text():
-    result = fake_result()
-    md = to_markdown(result)
-    assert "preset 'quick'" in md and "1,000 training frames" in md and "2 of the 100 fixed episodes" in md
-    assert "Git abc123" in md and "1.5 min" in md and "Random walk: the paper prints 1 / 2" in md
-    lines = [line for line in md.splitlines() if line.startswith("| ")]
-    assert lines[0].startswith("| method | seen/seen static SPL | seen/seen static SR |")
-    lstm = [line for line in lines if line.startswith("| LSTM A3C |")][0]
-    assert lstm.count("12.50") == 5 and lstm.count("25.00") == 5 and lstm.count("–") == 2
-    paper = [line for line in lines if line.startswith("| Random walk (paper) |")][0]
-    assert "| 0.50 | 1.50 |" in paper
-    csv_text = to_csv(result).splitlines()
-    assert csv_text[1].startswith("method,seen/seen static SPL") and len(csv_text) == 5
-    tex = to_latex(result)
-    assert tex.startswith(r"\begin{table*}") and r"\end{tabular}" in tex
-    assert r"LSTM A3C & 12.50 & 25.00" in tex and "--" in tex
-    assert all(
-        line.count("&") == 2 * len(CELLS)
-        for line in tex.splitlines()
-        if line.endswith(r"\\") and "multicolumn" not in line
+# ----------------------------------------------------------------------------------------------------
+# the writers, on a table built by hand from episodes
+
+
+def episode(column, kind, target, success, path=10, shortest=10, kitchen="FloorPlan1"):
+    return EpisodeResult(
+        kitchen=kitchen,
+        target=target,
+        kind=kind,
+        column=column,
+        start=0,
+        max_steps=100,
+        success=success,
+        path_length=path,
+        shortest_path=shortest,
+        collisions=0,
+        last_view_shows_target=success,
+        episode_length=path + 1,
     )
 
 
-def test_several_seeds_show_mean_and_std():
-    md = to_markdown(fake_result(seeds=2))
-    assert "2 seed(s) (mean ± std)" in md and "12.50 ± 0.00" in md
+def test_cell_episodes_keep_target_success_and_spl_term_in_percent():
+    cells = cell_episodes(
+        [
+            episode("seen_seen", "static", "Apple|1", True, path=20, shortest=10),
+            episode("seen_seen", "static", "Apple|1", False),
+            episode("unseen_kitchens", "actionable", "Egg|2", True, kitchen="FloorPlan30"),
+            episode("validation", "static", "Cup|3", True),  # no cell of Table I
+        ]
+    )
+    assert list(cells) == list(CELL_KEYS)
+    assert cells["seen_seen/static"] == [
+        EpisodeValue("FloorPlan1/Apple|1", 100.0, 50.0),
+        EpisodeValue("FloorPlan1/Apple|1", 0.0, 0.0),
+    ]
+    assert cells["unseen_kitchens/actionable"] == [EpisodeValue("FloorPlan30/Egg|2", 100.0, 100.0)]
+    assert cells["seen_unseen/static"] == [] and sum(len(v) for v in cells.values()) == 3
+
+
+def fake_result(preset_name: str = "quick") -> TableResult:
+    """Two seeds of four rows, episodes chosen so every interval can be worked out by hand.
+
+    +KG+Attention, static seen/seen: seed 0 has target A (2 episodes, both succeed on a shortest path)
+    and target B (2, both fail): SR 50, SPL 50, whatever the episode resample (within targets); seed 1
+    succeeds on all 4 at twice the shortest path: SR 100, SPL 50. So SPL is 50 [50, 50]; SR's replicates
+    are 50, 75 or 100 (seeds drawn with replacement, each end with p = 1/4): 75 [50, 100].
+    +KG fails them all: 0 [0, 0]. Static unseen kitchens: both rows succeed on every episode (paths
+    shortest): 100 [100, 100]. FF A3C: seen/seen static only. The last row is ours, not the paper's."""
+    spec = load_spec()
+    rows = {r.name: r for r in spec.rows}
+    ss, uk = ("seen_seen", "static"), ("unseen_kitchens", "static")
+    attention = [
+        [
+            episode(*ss, "A", True),
+            episode(*ss, "A", True),
+            episode(*ss, "B", False),
+            episode(*ss, "B", False),
+        ],
+        [episode(*ss, t, True, path=20) for t in "AABB"],
+    ]
+    kg = [[episode(*ss, t, False) for t in "AABB"] for _ in range(2)]
+    unseen = [episode(*uk, t, True, kitchen="FloorPlan30") for t in "CCD"]
+    ff = [[episode(*ss, t, True, path=40) for t in "AB"] for _ in range(2)]
+
+    def row(name, per_seed):
+        return RowResult(
+            rows[name], [cell_episodes(results) for results in per_seed], ["r"] * 2, ["e"] * 2, 1
+        )
+
+    return TableResult(
+        spec=dataclasses.replace(spec, comparisons=(Comparison("+KG", "+KG+Attention"),)),
+        preset=Preset(preset_name, "a test", 1000, 2, 2, (), (), {}),
+        rows=[
+            row("FF A3C", ff),
+            row("+KG", [seed + unseen for seed in kg]),
+            row("+KG+Attention", [seed + unseen for seed in attention]),
+            row("+IL+TSE, TSE (targets)", ff),
+        ],
+        seconds=90.0,
+        git_revision="abc123",
+    )
+
+
+def _cells_of(line: str) -> list[str]:
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
+def test_the_markdown_shows_intervals_the_papers_numbers_and_the_ablation_check():
+    md = to_markdown(fake_result())
+    assert "preset 'quick'" in md and "1,000 training frames" in md and "2 of the 100 fixed episodes" in md
+    assert "mean over 2 seeds, 95% stratified bootstrap interval over seeds and episodes" in md
+    assert "Git abc123" in md and "1.5 min" in md
+    lines = {_cells_of(line)[0]: _cells_of(line) for line in md.splitlines() if line.startswith("| ")}
+    head = lines["method"]
+    assert head[1:3] == ["static seen/seen SPL", "static seen/seen SR"]
+    assert head[-2:] == ["actionable unseen kitchens SPL", "actionable unseen kitchens SR"]
+    assert len(head) == 1 + 2 * 5  # five cells, SPL and SR each
+    # ours: mean over seeds [95% interval]; SPL first, as the paper
+    attention = lines["+KG+Attention"]
+    assert attention[1:3] == ["50.0 [50.0, 50.0]", "75.0 [50.0, 100.0]"]
+    assert attention[5:7] == ["100.0 [100.0, 100.0]"] * 2
+    assert attention[3:5] == ["–"] * 2 and attention[7:] == ["–"] * 4  # no episodes there
+    # the paper's numbers as printed, on the line below
+    paper = lines["+KG+Attention (paper)"]
+    assert paper[1:] == [
+        "52.58",
+        "98.44",
+        "14.89",
+        "44.25",
+        "7.20",
+        "41.09",
+        "38.51",
+        "88.78",
+        "5.26",
+        "21.13",
+    ]
+    assert lines["FF A3C"][1:3] == ["25.0 [25.0, 25.0]", "100.0 [100.0, 100.0]"]  # L / P = 10 / 40
+    assert lines["FF A3C (paper)"][5:7] == ["–", "–"]  # no FF A3C model for unseen kitchens
+    assert lines["+IL+TSE, TSE (targets) (paper)"][1:] == ["–"] * 10  # our row: none in the paper
+    # the ablation check: +KG+Attention - +KG per cell, SPL then SR: paper, ours, verdict
+    rows = [_cells_of(line) for line in md.splitlines() if line.startswith("| +KG+Attention − +KG |")]
+    checks = {row[1]: row for row in rows}
+    assert len(rows) == len(checks) == 5
+    assert "comparison" in lines and "**Ablation check.**" in md
+    # the paper: 52.58 - 52.32 = +0.26 (ours +50: holds) and 98.44 - 98.47 = -0.03 (ours +75: reversed)
+    assert checks["static seen/seen"][2:] == [
+        "+0.26",
+        "+50.0 [+50.0, +50.0]",
+        "holds",
+        "-0.03",
+        "+75.0 [+50.0, +100.0]",
+        "reversed",
+    ]
+    # 41.09 - 32.56 = +8.53; ours 0 [0, 0] holds 0: cannot tell
+    assert checks["static unseen kitchens"][5:] == ["+8.53", "+0.0 [+0.0, +0.0]", "cannot tell"]
+    assert checks["static seen/unseen"][2:] == ["+0.79", "–", "–", "+2.30", "–", "–"]  # no episodes
+    assert "Verdicts: SPL: holds 1, reversed 0, cannot tell 1; SR: holds 0, reversed 1, cannot tell 1." in md
+
+
+def _csv_rows(text: str) -> list[dict]:
+    lines = text.splitlines()
+    assert lines[0].startswith('"# ')  # the caption first, as a comment line
+    return list(csv.DictReader(lines[1:]))
+
+
+def test_the_csv_is_tidy_with_each_seeds_value_and_no_nan():
+    result = fake_result()
+    text = to_csv(result)
+    rows = _csv_rows(text)
+    assert list(rows[0]) == [
+        "row",
+        "method",
+        "column",
+        "kind",
+        "metric",
+        "mean",
+        "ci_low",
+        "ci_high",
+        "paper",
+        "episodes_per_seed",
+        "seed_0",
+        "seed_1",
+    ]
+    assert len(rows) == 4 * 5 * 2 and "nan" not in text.lower()
+    cell = {(r["row"], r["column"], r["kind"], r["metric"]): r for r in rows}
+    sr = cell[("+KG+Attention", "seen_seen", "static", "SR")]
+    assert sr == {
+        "row": "+KG+Attention",
+        "method": "kg_attention",
+        "column": "seen_seen",
+        "kind": "static",
+        "metric": "SR",
+        "mean": "75",
+        "ci_low": "50",
+        "ci_high": "100",
+        "paper": "98.44",
+        "episodes_per_seed": "4",
+        "seed_0": "50",
+        "seed_1": "100",
+    }
+    assert cell[("+KG+Attention", "unseen_kitchens", "static", "SR")]["paper"] == "41.09"
+    empty = cell[("FF A3C", "unseen_kitchens", "static", "SPL")]
+    assert [empty[k] for k in ("mean", "ci_low", "ci_high", "paper", "seed_0", "seed_1")] == [""] * 6
+    assert empty["episodes_per_seed"] == "0"
+    assert [(r["column"], r["kind"]) for r in rows[:10:2]] == list(CELLS)
+
+
+def test_the_ablation_csv():
+    rows = _csv_rows(to_ablation_csv(fake_result()))
+    assert len(rows) == 1 * 5 * 2  # one comparison, five cells, two metrics
+    by = {(r["column"], r["kind"], r["metric"]): r for r in rows}
+    sr = by[("seen_seen", "static", "SR")]
+    assert (sr["base"], sr["other"], sr["paper_base"], sr["paper_other"]) == (
+        "+KG",
+        "+KG+Attention",
+        "98.47",
+        "98.44",
+    )
+    assert (sr["paper_difference"], sr["difference"], sr["ci_low"], sr["ci_high"]) == (
+        "-0.03",
+        "75",
+        "50",
+        "100",
+    )
+    assert sr["verdict"] == "reversed"
+    unseen = by[("unseen_kitchens", "static", "SR")]
+    assert (unseen["paper_difference"], unseen["difference"], unseen["verdict"]) == (
+        "8.53",
+        "0",
+        "cannot tell",
+    )
+    nothing = by[("seen_unseen", "static", "SR")]
+    assert (nothing["paper_difference"], nothing["difference"], nothing["verdict"]) == ("2.3", "", "")
+
+
+def test_the_latex_has_both_tables():
+    tex = to_latex(fake_result())
+    assert tex.count(r"\begin{table*}") == 2 and tex.count(r"\end{tabular}") == 2
+    assert r"+KG+Attention & 50.0 [50.0, 50.0] & 75.0 [50.0, 100.0]" in tex
+    assert r"+KG+Attention (paper) & 52.58 & 98.44 & 14.89 & 44.25 & 7.20 & 41.09" in tex
+    # numbers get a math minus, names keep their hyphens; TeX's specials are escaped
+    assert r"+KG+Attention $-$ +KG & static seen/seen & +0.26 & +50.0 [+50.0, +50.0] & holds & $-$0.03" in tex
+    assert (
+        r"95\% stratified bootstrap" in tex
+        and "FF A3C (paper) & 35.16 & 88.33 & 10.81 & 35.64 & -- & --" in tex
+    )
+    table, ablation = tex.split(r"\end{table*}")[:2]
+    lines = [line for line in table.splitlines() if line.endswith("\\\\") and "multicolumn" not in line]
+    assert len(lines) == 1 + 2 * 4 and all(line.count("&") == 2 * len(CELLS) for line in lines)
+    lines = [line for line in ablation.splitlines() if line.endswith("\\\\") and "multicolumn" not in line]
+    assert len(lines) == 1 + 5 and all(line.count("&") == 2 + 3 * 2 - 1 for line in lines)
+
+
+def test_write_table_writes_four_files(tmp_path):
+    paths = write_table(fake_result(), tmp_path)
+    assert [p.name for p in paths] == ["table1.md", "table1.csv", "table1-ablation.csv", "table1.tex"]
+    assert "98.44" in paths[0].read_text() and "41.09" in paths[1].read_text()
+    paths = write_table(fake_result("smoke"), tmp_path)
+    assert [p.name for p in paths] == [
+        "table1-smoke.md",
+        "table1-smoke.csv",
+        "table1-smoke-ablation.csv",
+        "table1-smoke.tex",
+    ]
+    assert all(p.stat().st_size > 300 for p in paths)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -189,10 +443,13 @@ def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cach
     )
     assert whole.returncode == 0, whole.stderr[-2000:]
     table_a = (tmp_path / "a" / "table1-smoke.md").read_text()
-    for suffix in (".csv", ".tex"):
+    for suffix in (".csv", "-ablation.csv", ".tex"):
         assert (tmp_path / "a" / f"table1-smoke{suffix}").stat().st_size > 500
     rows = _numbers(table_a)
-    assert len(rows) == 1 + 9 and all(f"| {name} |" in table_a for name in ("IL", "+KG+Attention"))
+    spec = load_spec()
+    # the table (a header, ours and the paper's per row), the ablation check (a header, 5 cells each)
+    assert len(rows) == 1 + 2 * len(spec.rows) + 1 + len(CELLS) * len(spec.comparisons)
+    assert all(f"| {name} |" in table_a for name in ("IL", "+KG+Attention")) and "| 98.44 |" in table_a
     assert "preset 'smoke'" in table_a and "Git " in table_a
 
     # the checkpoint rule: best.pt is the validation with the best SR, the latest on a tie
@@ -234,6 +491,6 @@ def test_table_errors_are_one_line(capsys, tmp_path):
     bad.write_text(GOOD.replace('method = "ff_a3c"', 'method = "ff_a4c"'))
     assert main(["table", "--spec", str(bad), "--runs", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert "rows[2].method" in err and err.count("\n") == 1
+    assert "rows[3].method" in err and err.count("\n") == 1
     assert main(["table", "--preset", "huge", "--runs", str(tmp_path)]) == 2
     assert "unknown preset 'huge'" in capsys.readouterr().err
