@@ -54,14 +54,21 @@ def main() -> None:
     )
     parser.add_argument("--methods", default="", help="only these methods, e.g. kg_attention,lstm_a3c")
     parser.add_argument(
+        "--set", action="append", default=[], metavar="K=V", help="a training option for every row"
+    )
+    parser.add_argument(
         "--pixels", action="store_true", help="only lstm_a3c end to end from the views (pixels=true)"
     )
     args = parser.parse_args()
     rows = [("lstm_a3c", {"pixels": "true"})] if args.pixels else ROWS
     if args.methods:
         rows = [(m, o) for m, o in rows if m in args.methods.split(",")]
+    extra = dict(kv.split("=", 1) for kv in args.set)
     if args.agents:
-        rows = [(m, {**o, "agents_per_kitchen": str(args.agents)}) for m, o in rows]
+        extra["agents_per_kitchen"] = str(args.agents)
+        if args.agents < 7 and "fixed_targets" in train.TrainOptions.__dataclass_fields__:
+            extra.setdefault("fixed_targets", "false")  # one target per agent needs 7 agents per kitchen
+    rows = [(m, {**o, **extra}) for m, o in rows]
     torch.set_num_threads(args.threads)
     kitchens = train.training_kitchens(tuple(k for k in args.kitchens.split(",") if k))
     print(f"{len(kitchens)} training kitchens, {args.threads} threads, torch {torch.__version__}")
@@ -74,7 +81,7 @@ def main() -> None:
                 trainer.update()
             seconds = time.perf_counter() - start
             rate = (trainer.frames - frames) / seconds
-            shown = {k: v for k, v in options.items() if k != "agents_per_kitchen"}
+            shown = {k: v for k, v in options.items() if k not in ("agents_per_kitchen", "fixed_targets")}
             label = method + (" " + " ".join(f"{k}={v}" for k, v in shown.items()) if shown else "")
             print(
                 f"train  {label:44s} {trainer.nav.n:5d} agents  {rate:9,.0f} frames/s  "

@@ -68,6 +68,7 @@ SUCCESS_REWARD = 10.0
 TRAINING_MAX_STEPS = 5000
 SUCCESS_RULES = ("visible", "destination")
 TARGET_SETS = ("seen", "unseen", "all")
+IS_MOVE = np.isin(np.arange(len(ACTIONS)), MOVES)  # per action: a move (a failed one is a collision)
 
 
 class EnvError(ValueError):
@@ -130,6 +131,13 @@ class NavigationEnv(ParallelEnv):
         self.training_targets = self._select_targets(targets)
         self._tables = self._target_tables()
         self._target_row = {t.object_id: k for k, t in enumerate(self.tasks.targets)}
+        # what a step hands out, per state and per target row, kept ready for the per-agent dicts:
+        # plain ndarray views of the (memory-mapped, read-only) cache, since indexing a np.memmap runs
+        # Python code for every array it returns; and each target's destination, id, kind and seen
+        self._views = np.asarray(self.graph.views)
+        self._object_vectors = np.asarray(self.graph.object_vectors)
+        self._destination = np.array([t.destination for t in self.tasks.targets], np.int64)
+        self._target_meta = [(t.object_id, t.kind, t.seen) for t in self.tasks.targets]
         v = self.graph.views.shape[1]
         n_types = len(object_types())
         self._observation_space = spaces.Dict(
@@ -234,18 +242,19 @@ class NavigationEnv(ParallelEnv):
         self._arrived = self._tables.goal[self._row, self._state]
         self._shortest = self._tables.dist[self._row, self._start]
         self._live = list(range(n))
-        self._trail = [[int(s)] for s in self._state]
-        observations = {a: self._observe(i) for i, a in enumerate(self.agents)}
-        infos = {a: self._info(i) for i, a in enumerate(self.agents)}
-        return observations, infos
+        self._live_agents = list(self.agents)  # the names of _live, apart from the public env.agents
+        self._trail = [int(self._state[0])] if n else []  # agent 0's states, for render()
+        idx = np.arange(n)
+        return self._observations(self._live_agents, idx), self._infos(self._live_agents, idx)
 
     def step(self, actions: dict):
-        live = self._live
+        live, names = self._live, self._live_agents
         try:
-            given = [actions[self.possible_agents[i]] for i in live]
+            given = [actions[a] for a in names]
         except KeyError as e:
             raise EnvError(f"no action for live agent {e}") from e
-        if not all(_is_integer(a) for a in given):
+        # plain ints (the usual case) pass at C speed; anything else is checked one by one
+        if not set(map(type, given)) <= {int} and not all(_is_integer(a) for a in given):
             raise EnvError(f"actions must be integers 0..{len(ACTIONS) - 1}, got {given}")
         act = np.array(given, np.int64).reshape(len(live))
         if ((act < 0) | (act >= len(ACTIONS))).any():
@@ -263,7 +272,7 @@ class NavigationEnv(ParallelEnv):
         self._state[idx] = nxt
         self._steps[idx] += 1
         self._path[idx] += ~stop
-        self._collisions[idx] += np.isin(act, MOVES) & ~moved_ok
+        self._collisions[idx] += IS_MOVE[act] & ~moved_ok
         first_arrival = on_goal & ~self._arrived[idx]
         self._arrived[idx] |= on_goal
         self._success[idx] = success
@@ -271,48 +280,66 @@ class NavigationEnv(ParallelEnv):
         terminated_arr = success | (stop & self.stop_ends)
         truncated_arr = ~terminated_arr & (self._steps[idx] >= self._cap[idx])
 
-        observations, rewards, terminations, truncations, infos = {}, {}, {}, {}, {}
-        still = []
-        for k, i in enumerate(live):
-            agent = self.possible_agents[i]
-            self._trail[i].append(int(nxt[k]))
-            observations[agent] = self._observe(i)
-            rewards[agent] = float(rewards_arr[k])
-            terminations[agent] = bool(terminated_arr[k])
-            truncations[agent] = bool(truncated_arr[k])
-            infos[agent] = self._info(i)
-            if not (terminated_arr[k] or truncated_arr[k]):
-                still.append(i)
-        self._live = still
-        self.agents = [self.possible_agents[i] for i in still]
+        if live and live[0] == 0:
+            self._trail.append(int(nxt[0]))
+        observations = self._observations(names, idx)
+        rewards = dict(zip(names, rewards_arr.tolist()))
+        terminations = dict(zip(names, terminated_arr.tolist()))
+        truncations = dict(zip(names, truncated_arr.tolist()))
+        infos = self._infos(names, idx)
+        going = ~(terminated_arr | truncated_arr)
+        if not going.all():
+            self._live = idx[going].tolist()
+            self._live_agents = [a for a, on in zip(names, going.tolist()) if on]
+        self.agents = list(self._live_agents)
         return observations, rewards, terminations, truncations, infos
 
-    def _observe(self, i: int) -> dict:
-        g, s = self.graph, self._state[i]
-        dest = self.tasks.targets[self._row[i]].destination
+    def _observations(self, names: list[str], idx: np.ndarray) -> dict:
+        """The observation dicts of agents `names` (rows `idx`): fresh read-only views of the cache."""
+        views, vectors = self._views, self._object_vectors
         return {
-            "view": g.views[s],
-            "target": g.views[dest],
-            "view_objects": g.object_vectors[s],
-            "target_objects": g.object_vectors[dest],
+            a: {
+                "view": views[s],
+                "target": views[d],
+                "view_objects": vectors[s],
+                "target_objects": vectors[d],
+            }
+            for a, s, d in zip(names, self._state[idx].tolist(), self._destination[self._row[idx]].tolist())
         }
 
-    def _info(self, i: int) -> dict:
-        t = self.tasks.targets[self._row[i]]
-        s = int(self._state[i])
-        return {
-            "success": bool(self._success[i]),
-            "path_length": int(self._path[i]),
-            "episode_length": int(self._steps[i]),
-            "shortest_path": int(self._shortest[i]),
-            "collisions": int(self._collisions[i]),
-            "target": t.object_id,
-            "target_kind": t.kind,
-            "target_seen": t.seen,
-            "last_view_shows_target": bool(self._tables.visible[self._row[i], s]),
-            "state": s,
-            "expert_action": int(self._tables.expert[self._row[i], s]),
-        }
+    def _infos(self, names: list[str], idx: np.ndarray) -> dict:
+        """The info dicts of agents `names` (rows `idx`), from whole-array gathers."""
+        row, state = self._row[idx], self._state[idx]
+        meta = self._target_meta
+        columns = zip(
+            names,
+            row.tolist(),
+            state.tolist(),
+            self._success[idx].tolist(),
+            self._path[idx].tolist(),
+            self._steps[idx].tolist(),
+            self._shortest[idx].tolist(),
+            self._collisions[idx].tolist(),
+            self._tables.visible[row, state].tolist(),
+            self._tables.expert[row, state].tolist(),
+        )
+        infos = {}
+        for a, r, s, success, path, steps, shortest, collisions, shows, expert in columns:
+            target, kind, seen = meta[r]
+            infos[a] = {
+                "success": success,
+                "path_length": path,
+                "episode_length": steps,
+                "shortest_path": shortest,
+                "collisions": collisions,
+                "target": target,
+                "target_kind": kind,
+                "target_seen": seen,
+                "last_view_shows_target": shows,
+                "state": s,
+                "expert_action": expert,
+            }
+        return infos
 
     # -- looking at it ---------------------------------------------------------------------------
     def render(self):
@@ -322,7 +349,7 @@ class NavigationEnv(ParallelEnv):
         if not hasattr(self, "_state"):
             raise EnvError("render() before reset()")
         poses = [self.graph.pose(int(s)) for s in self._state]
-        path = [self.graph.pose(s) for s in self._trail[0]] if self._trail else None
+        path = [self.graph.pose(s) for s in self._trail] if self._trail else None
         highlight = sorted({self.tasks.targets[r].object_index for r in self._row})
         return top_down_map(self.graph.world, 400, poses, path, highlight)
 

@@ -212,7 +212,11 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
 
 
 def _without_expert(infos: dict) -> dict:
-    return {a: {k: v for k, v in i.items() if k != "expert_action"} for a, i in infos.items()}
+    shown = {}
+    for a, i in infos.items():
+        shown[a] = i = dict(i)  # a copy: the env's own dict keeps its expert_action
+        i.pop("expert_action", None)
+    return shown
 
 
 def policy_spec(config: EvalConfig, seed: int, view_size: int) -> PolicySpec:
@@ -248,6 +252,9 @@ def _check_actions(plugin: Plugin, actions, agents) -> None:
     missing = [a for a in agents if a not in actions]
     if missing:
         raise PluginError(f"{plugin.source}: act() must return an action for every agent; missing {missing}")
+    given = [actions[a] for a in agents]
+    if set(map(type, given)) <= {int} and (not given or 0 <= min(given) <= max(given) < len(ACTIONS)):
+        return  # plain ints in range, the usual case, checked at C speed; anything else one by one
     for agent in agents:
         a = actions[agent]
         if isinstance(a, np.ndarray) and a.ndim == 0:

@@ -130,7 +130,11 @@ class TrainOptions:
     value_weight: float = 0.5  # alpha: weight of the value loss
     entropy: float = 0.01  # weight of the entropy bonus
     max_grad_norm: float = 10.0
-    bf16: bool = True  # bfloat16 autocast (CPU)
+    # bfloat16 autocast (CPU). Off by default: on a CPU without native bf16 (no AVX512-BF16 or AMX;
+    # torch.ops.mkldnn._is_mkldnn_bf16_supported() is False on the 2-core development machine) autocast's
+    # bf16 products run in ATen's reference kernels (measured there, kg_attention il+tse, 140 agents,
+    # 2 threads, under load from another process: 421 frames/s with bf16, 4,878 without)
+    bf16: bool = False
     hidden: int = 256  # siamese / fusion width
     lstm: int = 256
     # imitation learning: cross-entropy on expert trajectories
