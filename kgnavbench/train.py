@@ -462,6 +462,20 @@ def step_rewards(first_arrival: np.ndarray, success: np.ndarray) -> np.ndarray:
     return STEP_REWARD + ARRIVAL_REWARD * first_arrival + SUCCESS_REWARD * success
 
 
+def arrays_state(owner, fields) -> dict:
+    """A checkpoint's copy of an object's NumPy arrays, as tensors (weights_only loads them)."""
+    return {name: torch.from_numpy(getattr(owner, name).copy()) for name in fields}
+
+
+def load_arrays(owner, fields, d: dict, what: str) -> None:
+    """Put back what `arrays_state` saved; a shape that differs is a ValueError naming the field."""
+    for name in fields:
+        value = d[name].numpy()
+        if value.shape != getattr(owner, name).shape:
+            raise ValueError(f"{what} {name} has shape {value.shape}, expected {getattr(owner, name).shape}")
+        setattr(owner, name, value.copy())
+
+
 class Navigators:
     """Agents in a StateSpace, each in its own episode: env.step for all of them as array gathers.
     A finished agent stays where it is until the caller starts its next episode (`draw`/`begin`)."""
@@ -544,16 +558,10 @@ class Navigators:
         return rewards, terminated, truncated
 
     def state_dict(self) -> dict:
-        return {name: torch.from_numpy(getattr(self, name).copy()) for name in self.FIELDS}
+        return arrays_state(self, self.FIELDS)
 
     def load_state_dict(self, d: dict) -> None:
-        for name in self.FIELDS:
-            value = d[name].numpy()
-            if value.shape != getattr(self, name).shape:
-                raise ValueError(
-                    f"agents' {name} has shape {value.shape}, expected {getattr(self, name).shape}"
-                )
-            setattr(self, name, value.copy())
+        load_arrays(self, self.FIELDS, d, "agents'")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -777,16 +785,10 @@ class SubtargetSampler:
         return out
 
     def state_dict(self) -> dict:
-        return {name: torch.from_numpy(getattr(self, name).copy()) for name in self.FIELDS}
+        return arrays_state(self, self.FIELDS)
 
     def load_state_dict(self, d: dict) -> None:
-        for name in self.FIELDS:
-            value = d[name].numpy()
-            if value.shape != getattr(self, name).shape:
-                raise ValueError(
-                    f"TSE's {name} has shape {value.shape}, expected {getattr(self, name).shape}"
-                )
-            setattr(self, name, value.copy())
+        load_arrays(self, self.FIELDS, d, "TSE's")
 
 
 def relabel(states, actions, behaviour, goal: int) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
