@@ -12,15 +12,18 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev]'
 	touch $(STAMP)
 
-## table: the main job. Regenerates the paper's Table I from tables/table1.toml: for each of the nine
-## rows, train (unless a finished run with the same config exists; an unfinished one resumes), take
-## the checkpoint with the best validation SR, evaluate it on the fixed episodes, then write
-## tables/table1.{md,csv,tex} and print the table. PRESET=quick (default, this laptop in about 24
-## minutes), PRESET=paper (the paper's budget), PRESET=smoke (seconds). Killed and re-run, it continues.
+## table: the main job. Regenerates the paper's Table I from tables/table1.toml: for each row and
+## seed (a job), train (unless a finished run with the same config exists; an unfinished one resumes),
+## take the checkpoint with the best validation SR, evaluate it on the fixed episodes, then write
+## tables/table1.{md,csv,tex} with intervals and the ablation check, and print the table. PRESET=quick
+## (default: the paper's nine rows, 3 seeds), quick-all (and our extra rows), paper (the paper's
+## budget), smoke (seconds). WORKERS jobs run at once (default: one per core; the table is the same
+## for any number). Killed and re-run, it continues.
 PRESET ?= quick
+WORKERS ?= $(shell nproc 2>/dev/null || echo 1)
 table: $(STAMP)
 	$(BIN)/kgnavbench prepare
-	$(BIN)/kgnavbench table --preset $(PRESET)
+	$(BIN)/kgnavbench table --preset $(PRESET) --workers $(WORKERS)
 
 ## baselines: the methods that need no training, under Table I's rule and SAVN's (EPISODES per target)
 EPISODES ?= 20

@@ -12,7 +12,7 @@
                     [--record FILE.rrd] [--record-episodes N] [--record-steps N]
     kgnavbench train --method NAME [--set KEY=VALUE] [--frames N] [--seed S] [--kitchens A,B]
                      [--runs DIR] [--record FILE.rrd]
-    kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR]
+    kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR] [--workers N]
     kgnavbench figures [--preset quick] [--runs DIR] [--out DIR]
     kgnavbench view FILE.rrd
 
@@ -428,7 +428,9 @@ def cmd_table(args: argparse.Namespace) -> int:
         spec = load_spec(args.spec or SPEC_FILE)
         if args.preset not in spec.presets:
             raise UsageError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
-        result = run_table(spec, args.preset, args.runs, progress=lambda line: print(line, flush=True))
+        result = run_table(
+            spec, args.preset, args.runs, progress=lambda line: print(line, flush=True), workers=args.workers
+        )
         paths = write_table(result, args.out or spec.path.parent)
     except (TableError, TrainError) as e:
         raise UsageError(str(e)) from e
@@ -661,6 +663,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
     _runs_option(p)
     p.add_argument("--out", type=Path, help="where the tables go (default: the spec's folder, tables/)")
+    p.add_argument(
+        "--workers",
+        type=_positive,
+        default=os.cpu_count() or 1,
+        help="jobs (row x seed) run at once, each in its own process (default: one per core); the "
+        "table is the same for any number, only the wall time differs",
+    )
     p.set_defaults(func=cmd_table)
     return parser
 

@@ -766,29 +766,56 @@ class ActorCritic(nn.Module):
             raise ModelError(f"ff views must be (B, history={frames}, features), got {tuple(x.shape)}")
         return x.reshape(x.shape[0], -1).to(dtype)
 
-    def forward(self, view, target, view_objects, target_objects, state=None, adjacency=None, scene=None):
-        joint, extras = self.encode(view, target, view_objects, target_objects, adjacency)
+    def forward(
+        self,
+        view,
+        target,
+        view_objects,
+        target_objects,
+        state=None,
+        adjacency=None,
+        scene=None,
+        target_rows=None,
+    ):
+        joint, extras = self.encode(view, target, view_objects, target_objects, adjacency, target_rows)
         logits, value, state = self.act(joint, state, scene)
         return logits, value, state, extras
 
-    def encode(self, view, target, view_objects, target_objects, adjacency=None) -> tuple[Tensor, dict]:
+    def encode(
+        self, view, target, view_objects, target_objects, adjacency=None, target_rows=None
+    ) -> tuple[Tensor, dict]:
         """The part of the network that does not recur over time: the siamese and fusion layers (and
         the knowledge graph's pooled Q) -> the joint input (B, J) of the LSTM or the scene layer. A
-        trainer runs it once over a whole rollout's states (T * B rows) rather than step by step."""
+        trainer runs it once over a whole rollout's states (T * B rows) rather than step by step.
+        `target_rows` (B,): `target` holds each distinct target once and row i's target is
+        target[target_rows[i]] (a rollout's rows share a few targets: the siamese layer and the target's
+        half of the fusion layer then run once per target, not once per row; not for FF)."""
         cfg = self.cfg
         frames = cfg.history if cfg.arch == "ff" else 1
         x_t = self._features(view, frames)
         x_g = self._features(target, 1)
         if frames > 1:  # Zhu et al. stack the target image as many times as the frames
+            if target_rows is not None:
+                raise ModelError("target_rows is not for ff (its target is stacked per frame)")
             x_g = x_g.repeat(1, frames)
         b = x_t.shape[0]
-        if x_t.shape[1] != self.siamese.in_features or x_g.shape != x_t.shape:
+        if x_t.shape[1] != self.siamese.in_features or x_g.shape[1] != x_t.shape[1]:
             raise ModelError(
                 f"view {tuple(x_t.shape)} and target {tuple(x_g.shape)} features do not fit "
                 f"{self.siamese.in_features} inputs"
             )
-        s = F.relu(self.siamese(torch.cat([x_t, x_g])))  # the siamese layer, both inputs in one product
-        joint = F.relu(self.fusion(torch.cat([s[:b], s[b:]], 1)))
+        if target_rows is not None:
+            # W_f [a, b] = W_f[:, :h] a + W_f[:, h:] b: the target's half once per distinct target
+            h = self.fusion.in_features // 2
+            s_t = F.relu(self.siamese(x_t))
+            s_g = F.relu(self.siamese(x_g))
+            w = self.fusion.weight
+            joint = F.relu(F.linear(s_t, w[:, :h]) + F.linear(s_g, w[:, h:], self.fusion.bias)[target_rows])
+        else:
+            if x_g.shape[0] != b:
+                raise ModelError(f"{x_g.shape[0]} targets for {b} views (without target_rows)")
+            s = F.relu(self.siamese(torch.cat([x_t, x_g])))  # the siamese layer, both inputs in one product
+            joint = F.relu(self.fusion(torch.cat([s[:b], s[b:]], 1)))
         attention = node_features = None
         if self.kg is not None:
             r_t = (view_objects > 0).to(self.kg.w0.dtype)

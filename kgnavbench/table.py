@@ -21,14 +21,18 @@ tell).
 
 from __future__ import annotations
 
+import concurrent.futures
 import csv
 import io
+import multiprocessing
 import time
 import tomllib
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
+
+import torch
 
 from .env import SUCCESS_RULES
 from .evaluate import (
@@ -106,6 +110,7 @@ class Preset:
     train_kitchens: tuple[str, ...]  # empty: all training kitchens
     eval_kitchens: tuple[str, ...]  # empty: Table I's kitchens (train + test)
     options: dict[str, str]  # training options for every learned row (`set`)
+    rows: tuple[str, ...] = ()  # the rows this preset runs, by name; empty: every row of the spec
 
 
 @dataclass(frozen=True)
@@ -212,7 +217,9 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
         if not isinstance(t, dict):
             raise TableError(f"{where} must be a table")
         _unknown(
-            where, t, {"description", "frames", "episodes", "seeds", "train_kitchens", "eval_kitchens", "set"}
+            where,
+            t,
+            {"description", "frames", "episodes", "seeds", "train_kitchens", "eval_kitchens", "set", "rows"},
         )
         preset = Preset(
             name=name,
@@ -227,6 +234,7 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
                 f"{where}.eval_kitchens", _field(where, t, "eval_kitchens", list, [], False)
             ),
             options=_options(f"{where}.set", _field(where, t, "set", dict, {}, required=False)),
+            rows=tuple(_field(where, t, "rows", list, [], required=False)),
         )
         if preset.frames < 1:
             raise TableError(f"{where}.frames = {preset.frames} must be at least 1")
@@ -273,6 +281,13 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
     names = [r.name for r in rows]
     if len(set(names)) != len(names):
         raise TableError(f"{path}: rows: a row name is used twice")
+    for preset in presets.values():
+        unknown = [n for n in preset.rows if n not in names]
+        if unknown or len(set(preset.rows)) != len(preset.rows):
+            raise TableError(
+                f"{path}: presets.{preset.name}.rows = {list(preset.rows)!r}: "
+                + (f"{unknown[0]!r} is not a row name" if unknown else "a row is named twice")
+            )
     comparisons = _comparisons(path, _field(str(path), raw, "comparisons", list, [], required=False), names)
     return TableSpec(path, protocol, presets, tuple(rows), comparisons)
 
@@ -419,42 +434,106 @@ def time_left(done: list[tuple[bool, float]], todo: list[bool]) -> float | None:
     return left
 
 
+def _job(spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path, progress, threads: int):
+    """One row and seed, trained (or found) and evaluated: what the table keeps of it. Runs in the
+    table's process or in a worker process (with `threads` torch threads: 1 where jobs run side by
+    side, so that they do not wait on each other's cores)."""
+    if threads:
+        torch.set_num_threads(threads)
+    started = time.time()
+    t0 = time.perf_counter()
+    try:
+        run_dir, run = run_row(spec, preset, row, seed, runs_dir, progress)
+    except PluginError as e:
+        raise TableError(f"row {row.name!r}: {e}") from e
+    # a row found done on disk took seconds, not what a row of its kind takes: no ETA sample
+    if run_dir is not None:
+        reused = (run_dir / "finished.json").stat().st_mtime < started
+    else:
+        reused = len(run.resumed) == len(run.config.kitchen_list())
+    return (
+        cell_episodes(run.results),
+        str(run_dir) if run_dir else "",
+        str(run.directory),
+        time.perf_counter() - t0,
+        reused,
+    )
+
+
+class _Prefixed:
+    """A worker's progress lines, each prefixed with its job (lines of two jobs interleave)."""
+
+    def __init__(self, prefix: str):
+        self.prefix = prefix
+
+    def __call__(self, line: str) -> None:
+        print(f"{self.prefix} {line}", flush=True)
+
+
 def run_table(
-    spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs", progress=print
+    spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs", progress=print, workers: int = 1
 ) -> TableResult:
-    """Every row, one after another, with progress and an ETA; resumable (see the module docstring)."""
+    """Every row and seed (a job each), with progress and an ETA; resumable (see the module docstring).
+    `workers` > 1 runs that many jobs at once in worker processes (torch on the preset's `threads`,
+    else one thread, each). A job's options, threads among them, come from the spec alone, so with
+    `threads` in the preset the runs and the table are the same whatever the number of workers; only
+    the wall time differs."""
     if preset_name not in spec.presets:
         raise TableError(f"unknown preset {preset_name!r}; {spec.path} has {', '.join(spec.presets)}")
+    if workers < 1:
+        raise TableError(f"workers must be at least 1, got {workers}")
     preset = spec.presets[preset_name]
     runs_dir = Path(runs_dir)
     start = time.perf_counter()
-    jobs = [(row, seed) for row in spec.rows for seed in range(preset.seeds)]
-    per_row: dict[str, RowResult] = {}
+    rows = [row for row in spec.rows if not preset.rows or row.name in preset.rows]
+    jobs = [(row, seed) for row in rows for seed in range(preset.seeds)]
     kinds = [_trains(row) for row, _ in jobs]
+    outcomes: list[tuple | None] = [None] * len(jobs)
+    # torch's threads in every job, training (the option) and evaluation alike: the spec's, so that a
+    # job's numbers do not depend on how many run at once (threads change the sums' order)
+    threads = int(preset.options.get("threads", "0"))
     done: list[tuple[bool, float]] = []
-    for n, (row, seed) in enumerate(jobs):
-        left = time_left(done, kinds[n:])
-        eta = f", about {left / 60:.0f} min left" if left is not None else ""
-        progress(f"== [{n + 1}/{len(jobs)}] {row.name} (seed {seed}){eta}")
-        t0, started = time.perf_counter(), time.time()
-        try:
-            run_dir, run = run_row(spec, preset, row, seed, runs_dir, progress)
-        except PluginError as e:
-            raise TableError(f"row {row.name!r}: {e}") from e
-        # a row found done on disk took seconds, not what a row of its kind takes: no ETA sample
-        reused = (
-            run_dir is not None and (run_dir / "finished.json").stat().st_mtime < started
-            if kinds[n]
-            else len(run.resumed) == len(run.config.kitchen_list())
-        )
+
+    def eta() -> str:
+        left = time_left(done, [k for k, o in zip(kinds, outcomes, strict=True) if o is None])
+        return f", about {left / 60 / workers:.0f} min left" if left is not None else ""
+
+    def title(n: int) -> str:
+        row, seed = jobs[n]
+        return f"[{n + 1}/{len(jobs)}] {row.name} (seed {seed})"
+
+    if workers == 1:
+        for n, (row, seed) in enumerate(jobs):
+            progress(f"== {title(n)}{eta()}")
+            outcomes[n] = _job(spec, preset, row, seed, runs_dir, progress, threads)
+            if not outcomes[n][4]:
+                done.append((kinds[n], outcomes[n][3]))
+    else:
+        # spawn: a fresh interpreter per worker (torch's thread pools do not survive a fork)
+        progress(f"== {len(jobs)} jobs, {workers} at a time, torch on one thread each")
+        context = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(workers, mp_context=context) as pool:
+            pending = {}
+            # the longest first, so that the last job does not run alone: the rows further down the
+            # spec add components (IL, TSE, the graph) and train slower
+            for n in reversed(range(len(jobs))):
+                row, seed = jobs[n]
+                prefix = _Prefixed(f"[{n + 1}/{len(jobs)}] {row.name} (seed {seed}):")
+                pending[pool.submit(_job, spec, preset, row, seed, runs_dir, prefix, threads or 1)] = n
+            for future in concurrent.futures.as_completed(pending):
+                n = pending[future]
+                outcomes[n] = future.result()
+                if not outcomes[n][4]:
+                    done.append((kinds[n], outcomes[n][3]))
+                progress(f"== done {title(n)} in {outcomes[n][3] / 60:.1f} min{eta()}")
+    per_row: dict[str, RowResult] = {}
+    for (row, _), (cells, train_run, eval_run, seconds, _) in zip(jobs, outcomes, strict=True):
         result = per_row.setdefault(row.name, RowResult(row, [], [], [], 0.0))
-        result.episodes.append(cell_episodes(run.results))
-        result.train_runs.append(str(run_dir) if run_dir else "")
-        result.eval_runs.append(str(run.directory))
-        result.seconds += time.perf_counter() - t0
-        if not reused:
-            done.append((kinds[n], time.perf_counter() - t0))
-    results = [per_row[row.name] for row in spec.rows]
+        result.episodes.append(cells)
+        result.train_runs.append(train_run)
+        result.eval_runs.append(eval_run)
+        result.seconds += seconds
+    results = [per_row[row.name] for row in rows]
     return TableResult(spec, preset, results, time.perf_counter() - start, git_revision())
 
 

@@ -848,22 +848,29 @@ class Model:
 
     def inputs(self, space: StateSpace, states, goals, history=None):
         """The network's inputs for agents in `states` (or their frame `history` (..., H) for FF)
-        toward the target images of `goals` (states): view and target features (or views), and the
+        toward the target images of `goals` (states): view features (or views), each distinct target's
+        features (or view) once with the row of every agent's (None for FF: one per agent), and the
         visible-type vectors R_t and R_g. Any leading shape (B or T x B)."""
         s = torch.from_numpy(np.ascontiguousarray(states))
         g = torch.from_numpy(np.ascontiguousarray(goals))
+        target_rows = None
+        if self.config.arch == "lstm":
+            distinct, rows = np.unique(goals, return_inverse=True)
+            target_rows = torch.from_numpy(rows.reshape(-1))
+        else:
+            distinct = goals
         if self.config.pixels:
             view = torch.from_numpy(space.views[history if history is not None else states])
-            target = torch.from_numpy(space.views[goals])
+            target = torch.from_numpy(space.views[distinct])
         else:
             view = space.features_t[torch.from_numpy(history) if history is not None else s]
-            target = space.features_t[g]
-        return view, target, space.objects_t[s], space.objects_t[g]
+            target = space.features_t[torch.from_numpy(np.ascontiguousarray(distinct))]
+        return view, target, target_rows, space.objects_t[s], space.objects_t[g]
 
     def __call__(self, space: StateSpace, states, goals, hidden, adjacency, scene=None, history=None):
         """One forward pass: agents in `states` (or their frame `history` (B, H) for FF) toward the
         target images of `goals` (states)."""
-        view, target, r_t, r_g = self.inputs(space, states, goals, history)
+        view, target, target_rows, r_t, r_g = self.inputs(space, states, goals, history)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
             logits, value, hidden, extras = self.net(
                 view,
@@ -873,6 +880,7 @@ class Model:
                 hidden,
                 adjacency=adjacency,
                 scene=None if scene is None else torch.from_numpy(np.ascontiguousarray(scene)),
+                target_rows=target_rows,
             )
         return logits.float(), value.float(), hidden, extras
 
@@ -884,9 +892,9 @@ class Model:
         (T, B)."""
         n, b = states.shape
         flat = history.reshape(n * b, -1) if history is not None else None
-        view, target, r_t, r_g = self.inputs(space, states.reshape(-1), goals.reshape(-1), flat)
+        view, target, target_rows, r_t, r_g = self.inputs(space, states.reshape(-1), goals.reshape(-1), flat)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
-            joint, _ = self.net.encode(view, target, r_t, r_g, adjacency)
+            joint, _ = self.net.encode(view, target, r_t, r_g, adjacency, target_rows)
             if self.config.arch != "lstm":
                 scenes = torch.from_numpy(np.ascontiguousarray(np.tile(scene, n)))
                 logits, values, _ = self.net.act(joint, None, scenes)

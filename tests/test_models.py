@@ -248,6 +248,33 @@ def test_output_shapes_of_every_network(arch, kg, graph):
     assert all(p.grad is not None for n, p in model.named_parameters() if not n.startswith("scene_"))
 
 
+@pytest.mark.parametrize("kg", ["none", "attention"])
+@pytest.mark.parametrize("pixels", [False, True])
+def test_each_distinct_target_once_gives_the_per_row_network(kg, pixels):
+    """target_rows: the siamese layer and the target's half of the fusion layer run once per distinct
+    target (what a rollout's rows share); the outputs and gradients are those of one target per row."""
+    cfg = ModelConfig(kg=kg, pixels=pixels)
+    model = make_model(cfg)
+    x = inputs(cfg, b=6)
+    rows = torch.tensor([0, 1, 1, 0, 2, 1])
+    distinct = x["target"][:3]
+    x["target_objects"] = x["target_objects"][:3][rows]
+    per_row = model(**{**x, "target": distinct[rows]}, state=None)
+    once = model(**{**x, "target": distinct}, state=None, target_rows=rows)
+    torch.testing.assert_close(once[0], per_row[0], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(once[1], per_row[1], rtol=1e-5, atol=1e-5)
+    grads = []
+    for out in (per_row, once):
+        model.zero_grad()
+        (out[0].square().sum() + out[1].sum()).backward()
+        grads.append({n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
+    assert grads[0].keys() == grads[1].keys()
+    for name in grads[0]:
+        torch.testing.assert_close(grads[1][name], grads[0][name], rtol=1e-4, atol=1e-5, msg=name)
+    with pytest.raises(ModelError, match="3 targets for 6 views"):
+        model(**{**x, "target": distinct}, state=None)
+
+
 @pytest.mark.parametrize("arch", ["lstm", "ff"])
 def test_pixel_models_take_uint8_views(arch):
     cfg = ModelConfig(arch=arch, kg="attention", pixels=True, history=2)

@@ -44,8 +44,18 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
     spec = load_spec()
     names = [r.name for r in spec.rows]
     assert names[:9] == PAPER_ROWS
-    assert names[9:] == ["IL, DAgger with a shortest-path teacher", "+IL+TSE, TSE (targets)"]
-    assert {"smoke", "quick", "paper"} <= set(spec.presets)
+    assert names[9:] == [
+        "IL, DAgger with a shortest-path teacher",
+        "+IL+TSE, TSE (targets)",
+        "+KG+Attention, softmax over all nodes",
+    ]
+    assert {"smoke", "quick", "quick-all", "paper"} <= set(spec.presets)
+    # quick: the paper's nine rows; quick-all: every row, under the same options (so it reuses quick's runs)
+    quick, every = spec.presets["quick"], spec.presets["quick-all"]
+    assert list(quick.rows) == PAPER_ROWS and every.rows == ()
+    assert quick.options == every.options and quick.options["threads"] == "1"
+    assert (quick.frames, quick.episodes, quick.seeds) == (every.frames, every.episodes, every.seeds)
+    assert quick.seeds >= 3 and quick.episodes >= 20 and quick.frames >= 2_000_000
     assert spec.presets["paper"].frames == 40_000_000 and spec.presets["paper"].episodes == 100
     assert spec.protocol.success_rule == "destination" and spec.protocol.stop_ends
     rows = {r.name: r for r in spec.rows}
@@ -64,6 +74,8 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
         Comparison("+TSE", "+IL+TSE"),
         Comparison("+IL+TSE", "+KG"),
         Comparison("+KG", "+KG+Attention"),
+        Comparison("+IL+TSE", "+IL+TSE, TSE (targets)"),
+        Comparison("+KG+Attention", "+KG+Attention, softmax over all nodes"),
     )
 
 
@@ -97,7 +109,7 @@ assert A_COMPARISON in GOOD
         ),
         (
             lambda t: t + "\n[[rows]]\nname = 'x'\nmethod = 'oracle'\npaper = { 'seen_seen/static' = 3 }\n",
-            "rows[11].paper.'seen_seen/static'",
+            "rows[12].paper.'seen_seen/static'",
         ),
         # the cell no target fills is not one of Table I's five
         (
@@ -105,7 +117,7 @@ assert A_COMPARISON in GOOD
                 t
                 + "\n[[rows]]\nname = 'x'\nmethod = 'oracle'\npaper = { 'seen_unseen/actionable' = [1, 2] }\n"
             ),
-            "rows[11].paper.'seen_unseen/actionable'",
+            "rows[12].paper.'seen_unseen/actionable'",
         ),
         # the random walk's numbers are in `paper` now: a note beside them is an unknown field
         (
@@ -125,7 +137,7 @@ assert A_COMPARISON in GOOD
             lambda t: t.replace('other = "+KG+Attention"\n', 'other = "+KG"\n'),
             "comparisons[5]: base and other",
         ),
-        (lambda t: t + "\n" + A_COMPARISON, "comparisons[6]: '+KG+Attention' against '+KG' is there twice"),
+        (lambda t: t + "\n" + A_COMPARISON, "comparisons[8]: '+KG+Attention' against '+KG' is there twice"),
         (
             lambda t: t.replace('other = "+KG+Attention"\n', 'other = "+KG+Attention"\nwhy = 1\n'),
             "comparisons[5] has unknown field(s) why",
@@ -135,6 +147,15 @@ assert A_COMPARISON in GOOD
             "comparisons = 3 must be list",
         ),
         (lambda t: t.replace("[protocol]", "[protocol"), "not valid TOML"),
+        (
+            lambda t: t.replace('rows = ["Random walk", "IL",', 'rows = ["Random walk", "Il",'),
+            "presets.quick.rows = ['Random walk', 'Il',",
+        ),
+        (
+            lambda t: t.replace('rows = ["Random walk", "IL",', 'rows = ["Random walk", "Random walk",'),
+            "a row is named twice",
+        ),
+        (lambda t: t.replace('rows = ["Random walk", "IL",', 'rows = "IL"\n#'), "presets.quick.rows = 'IL'"),
     ],
 )
 def test_a_bad_spec_gets_one_clear_line_naming_the_field(change, named):
@@ -416,7 +437,7 @@ def test_write_table_writes_four_files(tmp_path):
 # the smoke preset end to end: train, select, evaluate, write; killed and resumed
 
 
-def _table_cmd(runs, out) -> list[str]:
+def _table_cmd(runs, out, workers: int = 1) -> list[str]:
     return [
         sys.executable,
         "-m",
@@ -428,6 +449,8 @@ def _table_cmd(runs, out) -> list[str]:
         str(runs),
         "--out",
         str(out),
+        "--workers",
+        str(workers),
     ]
 
 
@@ -438,8 +461,10 @@ def _numbers(markdown: str) -> list[str]:
 
 def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cache):
     env = {**os.environ, "KGNAVBENCH_CACHE": str(hermetic_cache)}
+    # two jobs at a time in worker processes; the killed and resumed table below runs one at a time
+    # and must come out the same (the preset fixes torch's threads)
     whole = subprocess.run(
-        _table_cmd(tmp_path / "a", tmp_path / "a"), capture_output=True, text=True, env=env
+        _table_cmd(tmp_path / "a", tmp_path / "a", workers=2), capture_output=True, text=True, env=env
     )
     assert whole.returncode == 0, whole.stderr[-2000:]
     table_a = (tmp_path / "a" / "table1-smoke.md").read_text()
