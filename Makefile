@@ -19,11 +19,15 @@ $(STAMP): pyproject.toml
 ## (default: the paper's nine rows, 3 seeds), quick-all (and our extra rows), paper (the paper's
 ## budget), smoke (seconds). WORKERS jobs run at once (default: one per core; the table is the same
 ## for any number). Killed and re-run, it continues.
+## The vector code paths of MKL (products) and ATen (the rest) pinned to AVX2, the development
+## machine's: the floats of a run depend on them, and an AVX-512 CPU would otherwise take others
+## (NUMERICS= to let each library pick the fastest; see README "Reproducibility").
 PRESET ?= quick
 WORKERS ?= $(shell nproc 2>/dev/null || echo 1)
+NUMERICS ?= MKL_CBWR=AVX2 ATEN_CPU_CAPABILITY=avx2
 table: $(STAMP)
 	$(BIN)/kgnavbench prepare
-	$(BIN)/kgnavbench table --preset $(PRESET) --workers $(WORKERS)
+	$(NUMERICS) $(BIN)/kgnavbench table --preset $(PRESET) --workers $(WORKERS)
 
 ## baselines: the methods that need no training, under Table I's rule and SAVN's (EPISODES per target)
 EPISODES ?= 20

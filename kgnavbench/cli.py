@@ -13,6 +13,7 @@
     kgnavbench train --method NAME [--set KEY=VALUE] [--frames N] [--seed S] [--kitchens A,B]
                      [--runs DIR] [--record FILE.rrd]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR] [--workers N]
+                     [--jobs | --job N | --worker]
     kgnavbench figures [--preset quick] [--runs DIR] [--out DIR]
     kgnavbench view FILE.rrd
 
@@ -398,13 +399,14 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_figures(args: argparse.Namespace) -> int:
-    from .record import RecordError, figures_of_table
+    from .figures import FigureError, figures_of_table
+    from .record import RecordError
     from .table import TableError
     from .train import TrainError
 
     try:
         paths = figures_of_table(args.preset, args.runs, args.out, args.spec, progress=print)
-    except (RecordError, TableError, TrainError) as e:
+    except (FigureError, RecordError, TableError, TrainError) as e:
         raise UsageError(str(e)) from e
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
@@ -421,16 +423,37 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
-    from .table import SPEC_FILE, TableError, load_spec, run_table, to_markdown, write_table
+    from .table import (
+        SPEC_FILE,
+        TableError,
+        job_commands,
+        load_spec,
+        run_job,
+        run_table,
+        run_worker,
+        to_markdown,
+        write_table,
+    )
     from .train import TrainError
+
+    def say(line: str) -> None:
+        print(line, flush=True)
 
     try:
         spec = load_spec(args.spec or SPEC_FILE)
         if args.preset not in spec.presets:
             raise UsageError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
-        result = run_table(
-            spec, args.preset, args.runs, progress=lambda line: print(line, flush=True), workers=args.workers
-        )
+        if args.jobs:
+            print("\n".join(job_commands(spec, args.preset, args.runs)))
+            return 0
+        if args.job is not None or args.worker:
+            if args.job is not None:
+                run_job(spec, args.preset, args.job, args.runs, progress=say)
+            else:
+                run_worker(spec, args.preset, args.runs, progress=say)
+            print(f"then `kgnavbench table --preset {args.preset} --runs {args.runs}` assembles the table")
+            return 0
+        result = run_table(spec, args.preset, args.runs, progress=say, workers=args.workers)
         paths = write_table(result, args.out or spec.path.parent)
     except (TableError, TrainError) as e:
         raise UsageError(str(e)) from e
@@ -669,6 +692,19 @@ def build_parser() -> argparse.ArgumentParser:
         default=os.cpu_count() or 1,
         help="jobs (row x seed) run at once, each in its own process (default: one per core); the "
         "table is the same for any number, only the wall time differs",
+    )
+    many = p.add_mutually_exclusive_group()
+    many.add_argument(
+        "--jobs",
+        action="store_true",
+        help="print one command per job (row x seed) and exit, for many machines",
+    )
+    many.add_argument("--job", type=int, metavar="N", help="run job N of --jobs' list only (no table)")
+    many.add_argument(
+        "--worker",
+        action="store_true",
+        help="take the next unclaimed job from the runs folder until none is left (no table); start "
+        "one per machine or core that shares the runs folder, then run `table` to assemble",
     )
     p.set_defaults(func=cmd_table)
     return parser

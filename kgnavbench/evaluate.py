@@ -34,7 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from .env import SUCCESS_RULES, parallel_env
-from .kitchens import KITCHEN_NAMES, atomic_write, check_name, git_revision
+from .files import atomic_write, git_revision
+from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import Plugin, PluginError, PolicySpec, guarded, load_plugin
 from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks
 from .world import ACTIONS

@@ -17,12 +17,11 @@ from __future__ import annotations
 import gzip
 import json
 import math
-import os
-import subprocess
-import tempfile
 from dataclasses import dataclass
 from functools import cache, lru_cache
 from pathlib import Path
+
+from .files import atomic_write
 
 GRID = 0.25
 KITCHEN_NAMES = tuple(f"FloorPlan{i}" for i in range(1, 31))
@@ -495,25 +494,6 @@ def compile_kitchen(name: str, thor_data: Path | str = DEFAULT_THOR_DATA) -> dic
     }
 
 
-def atomic_write(path: Path, content) -> None:
-    """Write `content` (bytes, text, or a function save(binary file)) into a unique temporary file beside
-    `path`, then rename it over `path`: readers never see half a file, concurrent writers never share a
-    temporary file, a failure leaves the old file as it was. The one atomic writer of the package."""
-    if isinstance(content, str):
-        content = content.encode()
-    save = (lambda f: f.write(content)) if isinstance(content, bytes) else content
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            save(f)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def compile_all(thor_data: Path | str = DEFAULT_THOR_DATA, out_dir: Path = KITCHEN_DIR) -> list[Path]:
     thor = Path(thor_data)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -529,24 +509,6 @@ def compile_all(thor_data: Path | str = DEFAULT_THOR_DATA, out_dir: Path = KITCH
     atomic_write(out_dir.parent / "object_types.json", json.dumps(types, indent=0).encode())
     load_kitchen.cache_clear()
     return written
-
-
-def git_revision() -> str:
-    """The checkout's commit, saved in every run directory: HEAD's, with '-dirty' when tracked files
-    differ from it; 'unknown' outside a checkout."""
-
-    def git(*args: str) -> str:
-        out = subprocess.run(
-            ["git", *args], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=10
-        )
-        return out.stdout.strip()
-
-    try:
-        rev = git("rev-parse", "HEAD")
-        dirty = git("status", "--porcelain", "--untracked-files=no")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return (rev + ("-dirty" if dirty else "")) if rev else "unknown"
 
 
 if __name__ == "__main__":

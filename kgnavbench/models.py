@@ -50,7 +50,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .kitchens import DATA_DIR, atomic_write, check_name
+from .files import atomic_write, first_line
+from .kitchens import DATA_DIR, check_name
 from .tasks import VIEW_SIZE, cache_dir, graph_fingerprint, load_task_file, state_graph
 from .world import ACTIONS, PITCHES
 
@@ -61,11 +62,6 @@ ENCODER_FILE = DATA_DIR / "encoder.pt"
 ENCODER_FORMAT = 1
 # Fixed input normalisation of the uint8 views (mean and spread of rendered views, rounded).
 PIXEL_MEAN, PIXEL_STD = 0.45, 0.25
-
-
-def first_line(error: BaseException) -> str:
-    """An exception's message cut to its first line (torch's load errors run to a page)."""
-    return (str(error).strip().splitlines() or [""])[0]
 
 
 class ModelError(ValueError):

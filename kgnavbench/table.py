@@ -25,6 +25,7 @@ import concurrent.futures
 import csv
 import io
 import multiprocessing
+import os
 import time
 import tomllib
 import zlib
@@ -34,6 +35,7 @@ from typing import NamedTuple
 
 import torch
 
+from . import claims
 from .env import SUCCESS_RULES
 from .evaluate import (
     COLUMN_TITLES,
@@ -45,6 +47,7 @@ from .evaluate import (
     git_revision,
     spl_term,
 )
+from .files import atomic_write
 from .intervals import (
     REPLICATES,
     VERDICTS,
@@ -54,7 +57,7 @@ from .intervals import (
     joint_stratified_bootstrap,
     verdict,
 )
-from .kitchens import KITCHEN_NAMES, atomic_write
+from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, available, load_plugin
 from .tasks import EPISODES_PER_TARGET, load_task_file
 from .train import train_method
@@ -470,6 +473,78 @@ class _Prefixed:
         print(f"{self.prefix} {line}", flush=True)
 
 
+def preset_rows(spec: TableSpec, preset: Preset) -> list[Row]:
+    return [row for row in spec.rows if not preset.rows or row.name in preset.rows]
+
+
+def table_jobs(spec: TableSpec, preset: Preset) -> list[tuple[Row, int]]:
+    """The preset's jobs, (row, seed) each, in the table's order: job N (from 1) is the N-th."""
+    return [(row, seed) for row in preset_rows(spec, preset) for seed in range(preset.seeds)]
+
+
+def _preset(spec: TableSpec, preset_name: str) -> Preset:
+    if preset_name not in spec.presets:
+        raise TableError(f"unknown preset {preset_name!r}; {spec.path} has {', '.join(spec.presets)}")
+    return spec.presets[preset_name]
+
+
+def job_claim(runs_dir: Path | str, preset: Preset, n: int, row: Row, seed: int) -> Path:
+    """Where job n's claim lives: named by the preset, the job's number, its row and its seed."""
+    return (
+        Path(runs_dir)
+        / "claims"
+        / f"table-{preset.name}-{n + 1:03d}-{zlib.crc32(row.name.encode()):08x}-s{seed}.claim"
+    )
+
+
+def job_commands(spec: TableSpec, preset_name: str, runs_dir: Path | str) -> list[str]:
+    """One shell command per job (for a Slurm array, `xargs -P`, ssh loops): each trains and evaluates
+    its row and seed into the shared runs folder; `kgnavbench table` after them only assembles."""
+    preset = _preset(spec, preset_name)
+    jobs = table_jobs(spec, preset)
+    spec_option = "" if Path(spec.path).resolve() == SPEC_FILE.resolve() else f" --spec {spec.path}"
+    base = f"kgnavbench table --preset {preset.name}{spec_option} --runs {runs_dir}"
+    return [f"{base} --job {n + 1}  # {row.name} (seed {seed})" for n, (row, seed) in enumerate(jobs)]
+
+
+def run_job(
+    spec: TableSpec, preset_name: str, number: int, runs_dir: Path | str = "runs", progress=print
+) -> None:
+    """Job `number` (from 1, as `job_commands` prints it): train (or find, or resume) and evaluate."""
+    preset = _preset(spec, preset_name)
+    jobs = table_jobs(spec, preset)
+    if not 1 <= number <= len(jobs):
+        raise TableError(f"preset {preset.name!r} has jobs 1..{len(jobs)}, not {number}")
+    row, seed = jobs[number - 1]
+    progress(f"== [{number}/{len(jobs)}] {row.name} (seed {seed})")
+    _job(spec, preset, row, seed, Path(runs_dir), progress, int(preset.options.get("threads", "0")))
+
+
+def run_worker(spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs", progress=print) -> list[int]:
+    """Take the next unclaimed job of the preset, run it, mark it done, until none is left; returns
+    the numbers (from 1) of the jobs this worker ran. Several workers, on this machine or on others
+    that share `runs_dir`, split the jobs between them (`claims`: a job is claimed by one worker; a
+    dead worker's claim on this host is taken over)."""
+    preset = _preset(spec, preset_name)
+    jobs = table_jobs(spec, preset)
+    threads = int(preset.options.get("threads", "0"))
+    ran = []
+    for n, (row, seed) in enumerate(jobs):
+        path = job_claim(runs_dir, preset, n, row, seed)
+        if not claims.claim(path):
+            continue
+        try:
+            progress(f"== [{n + 1}/{len(jobs)}] {row.name} (seed {seed}): claimed by pid {os.getpid()}")
+            _job(spec, preset, row, seed, Path(runs_dir), progress, threads)
+        except BaseException:
+            claims.release(path)
+            raise
+        claims.done(path)
+        ran.append(n + 1)
+    progress(f"== no job of preset {preset.name!r} left to claim; this worker ran {len(ran)}")
+    return ran
+
+
 def run_table(
     spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs", progress=print, workers: int = 1
 ) -> TableResult:
@@ -478,15 +553,13 @@ def run_table(
     else one thread, each). A job's options, threads among them, come from the spec alone, so with
     `threads` in the preset the runs and the table are the same whatever the number of workers; only
     the wall time differs."""
-    if preset_name not in spec.presets:
-        raise TableError(f"unknown preset {preset_name!r}; {spec.path} has {', '.join(spec.presets)}")
+    preset = _preset(spec, preset_name)
     if workers < 1:
         raise TableError(f"workers must be at least 1, got {workers}")
-    preset = spec.presets[preset_name]
     runs_dir = Path(runs_dir)
     start = time.perf_counter()
-    rows = [row for row in spec.rows if not preset.rows or row.name in preset.rows]
-    jobs = [(row, seed) for row in rows for seed in range(preset.seeds)]
+    rows = preset_rows(spec, preset)
+    jobs = table_jobs(spec, preset)
     kinds = [_trains(row) for row, _ in jobs]
     outcomes: list[tuple | None] = [None] * len(jobs)
     # torch's threads in every job, training (the option) and evaluation alike: the spec's, so that a

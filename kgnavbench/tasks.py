@@ -21,8 +21,10 @@ the object (ties: more pixels, then the lowest state index), and its target imag
 Splits (rules in code here, written down in the README):
   * kitchens: the 20 with the most actionable targets train (ties: the lower FloorPlan number); the
     other ten, in the same order, alternate validation and test;
-  * targets: in every kitchen and for each kind, ceil(n / 4) targets are unseen, chosen by a shuffle
-    seeded with "<kitchen>/<kind>"; the rest are seen (training targets).
+  * targets: a training kitchen has SEEN_TARGETS_PER_KITCHEN (7) seen targets, the paper's 140 in 20
+    kitchens: every actionable target, then static ones by a shuffle seeded with the kitchen name
+    (`seen_targets`); its other targets are unseen. Every target of a validation or test kitchen is
+    unseen.
 Fixed episodes: 100 per target, starting in a closed state at pitch 0 that does not show the target,
 at least 10 actions from the target's destination (the place its image shows), drawn with a generator
 seeded by "<kitchen>/<object id>". They are saved in `kgnavbench/data/tasks.json.gz` (committed;
@@ -50,11 +52,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .files import atomic_write
 from .kitchens import (
     DATA_DIR,
     KITCHEN_DIR,
     KITCHEN_NAMES,
-    atomic_write,
     check_name,
     object_types,
 )

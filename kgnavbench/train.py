@@ -49,9 +49,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import models
+from . import claims, models
 from .env import ARRIVAL_REWARD, STEP_REWARD, SUCCESS_REWARD, SUCCESS_RULES, TRAINING_MAX_STEPS
-from .kitchens import KITCHEN_NAMES, atomic_write, check_name, git_revision, object_types
+from .files import atomic_write, first_line, git_revision
+from .kitchens import KITCHEN_NAMES, check_name, object_types
 from .plugins import load_plugin
 from .tasks import (
     MIN_START_DISTANCE,
@@ -298,6 +299,21 @@ def train_method(
     if (directory / "finished.json").exists():
         progress(f"{directory} is a finished run of {frames:,} frames; nothing to do")
         return directory
+    # one trainer per run directory: a second one started on it at once is refused (a killed one's
+    # claim is stale and taken over by the resume)
+    try:
+        with claims.held(directory / "trainer.claim", f"run {directory}"):
+            return _train_in(
+                directory, hook, config, record, Run(directory, method, frames, seed, kitchens, progress)
+            )
+    except claims.ClaimError as e:
+        raise TrainError(str(e)) from e
+
+
+def _train_in(directory: Path, hook, config, record: dict, run: Run) -> Path:
+    if (directory / "finished.json").exists():  # finished by the process that held the claim before us
+        run.progress(f"{directory} is a finished run of {run.frames:,} frames; nothing to do")
+        return directory
     config_path = directory / "config.json"
     if config_path.exists():
         try:
@@ -313,7 +329,7 @@ def train_method(
             )
     else:
         atomic_write(config_path, json.dumps({**record, "git_revision": git_revision()}, indent=2) + "\n")
-    hook(config, Run(directory, method, frames, seed, kitchens, progress))
+    hook(config, run)
     return directory
 
 
@@ -1328,8 +1344,7 @@ def load_checkpoint(path: Path | str) -> dict:
         raise TrainError(f"checkpoint {path} does not exist") from e
     except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, one line naming it
         raise TrainError(
-            f"checkpoint {path} is corrupt ({type(e).__name__}: {models.first_line(e)}); "
-            "delete it to start over"
+            f"checkpoint {path} is corrupt ({type(e).__name__}: {first_line(e)}); delete it to start over"
         ) from e
 
 

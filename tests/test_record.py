@@ -13,7 +13,8 @@ import pytest
 import torch
 from rerun.chunk import RrdReader
 
-from kgnavbench import record
+from kgnavbench import figures, record
+from kgnavbench.figures import FigureError
 from kgnavbench.plugins import PluginError
 from kgnavbench.record import RecordError
 
@@ -186,11 +187,11 @@ def test_tsne_is_deterministic_and_keeps_clusters_apart():
     a = torch.randn(20, 10, generator=g)
     b = torch.randn(20, 10, generator=g) + 20.0
     x = torch.cat([a, b])
-    y = record.tsne(x, perplexity=8, iterations=300, seed=3)
+    y = figures.tsne(x, perplexity=8, iterations=300, seed=3)
     assert y.shape == (40, 2) and torch.isfinite(y).all()
-    assert torch.equal(y, record.tsne(x.clone(), perplexity=8, iterations=300, seed=3))
-    assert not torch.equal(y, record.tsne(x, perplexity=8, iterations=300, seed=4))
-    assert record.tsne(x, dims=3, iterations=50).shape == (40, 3)
+    assert torch.equal(y, figures.tsne(x.clone(), perplexity=8, iterations=300, seed=3))
+    assert not torch.equal(y, figures.tsne(x, perplexity=8, iterations=300, seed=4))
+    assert figures.tsne(x, dims=3, iterations=50).shape == (40, 3)
     # every point is nearer to its own cluster's centre than to the other's
     ca, cb = y[:20].mean(0), y[20:].mean(0)
     assert ((y[:20] - ca).norm(dim=1) < (y[:20] - cb).norm(dim=1)).all()
@@ -198,7 +199,7 @@ def test_tsne_is_deterministic_and_keeps_clusters_apart():
     spread = max((y[:20] - ca).norm(dim=1).max(), (y[20:] - cb).norm(dim=1).max())
     assert (ca - cb).norm() > 2 * spread
     with pytest.raises(ValueError):
-        record.tsne(torch.zeros(5))
+        figures.tsne(torch.zeros(5))
 
 
 def _is_figure(path, size=(1000, 600)) -> bool:
@@ -213,7 +214,7 @@ def _is_figure(path, size=(1000, 600)) -> bool:
 
 def test_figures_are_pngs_of_the_right_size(tmp_path):
     labels = ["Random walk", "LSTM A3C", "+KG+Attention (ours)"]
-    p = record.bar_line_figure(
+    p = figures.bar_line_figure(
         labels,
         [12.0, 5.5, 1.7],
         [3.0, float("nan"), 44.1],
@@ -224,14 +225,14 @@ def test_figures_are_pngs_of_the_right_size(tmp_path):
     )
     assert _is_figure(p)
     pts = np.array([[0.0, 0.0], [1.0, 2.0], [3.0, -1.0]])
-    assert _is_figure(record.scatter_figure(pts, ["Fridge", "Egg", "Apple"], tmp_path / "b.png", "t-SNE"))
+    assert _is_figure(figures.scatter_figure(pts, ["Fridge", "Egg", "Apple"], tmp_path / "b.png", "t-SNE"))
     series = {"a": ([0, 1000, 2000], [0.0, 0.2, 0.5]), "b": ([0, 1000, 2000], [0.1, float("nan"), 0.7])}
-    assert _is_figure(record.curves_figure(series, tmp_path / "c.png", "curves", "frames", "SR"))
+    assert _is_figure(figures.curves_figure(series, tmp_path / "c.png", "curves", "frames", "SR"))
     assert _is_figure(
-        record.curves_figure(series, tmp_path / "d.png", "small", "x", "y", size=(640, 400)), (640, 400)
+        figures.curves_figure(series, tmp_path / "d.png", "small", "x", "y", size=(640, 400)), (640, 400)
     )
-    with pytest.raises(RecordError):
-        record.bar_line_figure(labels, [1.0], [1.0], tmp_path / "e.png", "t", "a", "b")
+    with pytest.raises(FigureError):
+        figures.bar_line_figure(labels, [1.0], [1.0], tmp_path / "e.png", "t", "a", "b")
 
 
 def test_recording_costs_nothing_when_off():
@@ -286,9 +287,9 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
         seen + [_episode("unseen_kitchens", c, s, "FloorPlan27") for c, s in ((1, True), (0, True))],
     )
     ff = _eval_run(tmp_path / "eval" / "ff", seen)  # no unseen kitchens: no bar
-    assert record.unseen_kitchen_stats(record.read_episodes(walk)) == (3.0, 25.0)
-    assert record.unseen_kitchen_stats(record.read_episodes(ours)) == (0.5, 100.0)
-    assert record.unseen_kitchen_stats(record.read_episodes(ff)) is None
+    assert figures.unseen_kitchen_stats(figures.read_episodes(walk)) == (3.0, 25.0)
+    assert figures.unseen_kitchen_stats(figures.read_episodes(ours)) == (0.5, 100.0)
+    assert figures.unseen_kitchen_stats(figures.read_episodes(ff)) is None
 
     options = {
         "agents_per_kitchen": "7",
@@ -316,30 +317,30 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
         ("+KG+Attention", str(run), str(ours)),
     ]
     notes = []
-    paths = record.figures(rows, tmp_path / "figures", progress=notes.append)
+    paths = figures.figures(rows, tmp_path / "figures", progress=notes.append)
     names = [p.name for p in paths]
     assert names == ["collisions_unseen.png", "tsne_gcn.png", "training_curves.png", "training_reward.png"]
     assert not notes
     for p in paths:
-        assert _is_figure(p, record.TSNE_SIZE if p.name == "tsne_gcn.png" else record.FIGURE_SIZE), p
+        assert _is_figure(p, figures.TSNE_SIZE if p.name == "tsne_gcn.png" else figures.FIGURE_SIZE), p
 
     # the GCN features the t-SNE embeds: the checkpoint's network over its own co-visibility graph
-    h, adjacency = record.gcn_node_features(record._kg_checkpoint(run)[0])
+    h, adjacency = figures.gcn_node_features(figures._kg_checkpoint(run)[0])
     assert h.shape == (125, 16) and adjacency.sum() > 0
 
     # without a KG run or a training run: the figures that need them are skipped, with a note
     notes.clear()
-    paths = record.figures(rows[:2], tmp_path / "fewer", progress=notes.append)
+    paths = figures.figures(rows[:2], tmp_path / "fewer", progress=notes.append)
     assert [p.name for p in paths] == ["collisions_unseen.png"]
     assert len(notes) == 3 and "tsne_gcn.png skipped" in notes[0]
 
-    with pytest.raises(RecordError, match="no such evaluation run directory"):
-        record.figures([("LSTM A3C", None, str(tmp_path / "missing"))], tmp_path / "x")
-    with pytest.raises(RecordError, match="no such training run directory"):
-        record.figures([("LSTM A3C", str(tmp_path / "gone"), str(ours))], tmp_path / "x")
+    with pytest.raises(FigureError, match="no such evaluation run directory"):
+        figures.figures([("LSTM A3C", None, str(tmp_path / "missing"))], tmp_path / "x")
+    with pytest.raises(FigureError, match="no such training run directory"):
+        figures.figures([("LSTM A3C", str(tmp_path / "gone"), str(ours))], tmp_path / "x")
     (ff / "episodes" / "FloorPlan1.jsonl").write_text("{not json\n")
-    with pytest.raises(RecordError, match="line 1"):
-        record.figures(rows, tmp_path / "x")
+    with pytest.raises(FigureError, match="line 1"):
+        figures.figures(rows, tmp_path / "x")
     assert not (tmp_path / "x").exists()  # bad input fails before any figure is written
 
 
@@ -361,7 +362,7 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(table, "run_table", lambda *args: calls.append(args) or result)
     notes = []
-    paths = record.figures_of_table("smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append)
+    paths = figures.figures_of_table("smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append)
     assert [p.name for p in paths] == ["collisions_unseen.png"]
     assert calls == [(spec, "smoke", tmp_path / "runs", notes.append)]
     assert len(notes) == 3  # no training runs: the t-SNE and both curves are skipped

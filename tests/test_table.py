@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -29,6 +30,7 @@ from kgnavbench.table import (
     cell_episodes,
     load_spec,
     parse_spec,
+    table_jobs,
     time_left,
     to_ablation_csv,
     to_csv,
@@ -509,6 +511,47 @@ def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cach
     )
     assert third.returncode == 0 and "min left" not in third.stdout, third.stdout[-2000:]
     assert "min left" in whole.stdout  # while rows train, it is given
+
+
+def test_two_workers_split_the_jobs_and_table_then_only_assembles(tmp_path, hermetic_cache):
+    """`table --worker` twice at once on one runs folder: each job runs once, in one of them; a plain
+    `table` after them trains nothing and writes the table a single process writes."""
+    env = {**os.environ, "KGNAVBENCH_CACHE": str(hermetic_cache)}
+    runs = tmp_path / "shared"
+    worker = _table_cmd(runs, runs)[:-2] + ["--worker"]  # no --workers
+    procs = [subprocess.Popen(worker, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)]
+    procs.append(subprocess.Popen(worker, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env))
+    outputs = [p.communicate(timeout=900) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [err[-2000:] for _, err in outputs]
+    ran = [int(n) for out, _ in outputs for n in re.findall(r"^== \[(\d+)/\d+\].*claimed by pid", out, re.M)]
+    spec = load_spec()
+    assert sorted(ran) == list(range(1, len(table_jobs(spec, spec.presets["smoke"])) + 1))  # each once
+    assert all("no job of preset 'smoke' left" in out for out, _ in outputs)
+    assembled = subprocess.run(_table_cmd(runs, runs), capture_output=True, text=True, env=env)
+    assert assembled.returncode == 0, assembled.stderr[-2000:]
+    assert not re.search(r"training \w+ on \d+ kitchens", assembled.stdout)  # no run trains again
+    assert "nothing to do" in assembled.stdout
+    single = subprocess.run(
+        _table_cmd(tmp_path / "one", tmp_path / "one"), capture_output=True, text=True, env=env
+    )
+    assert single.returncode == 0, single.stderr[-2000:]
+    assert _numbers((runs / "table1-smoke.md").read_text()) == _numbers(
+        (tmp_path / "one" / "table1-smoke.md").read_text()
+    )
+
+
+def test_jobs_prints_one_command_per_job_and_job_checks_its_number(capsys, tmp_path):
+    assert main(["table", "--preset", "quick", "--runs", str(tmp_path), "--jobs"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    spec = load_spec()
+    assert len(lines) == len(table_jobs(spec, spec.presets["quick"])) == 9 * 3
+    assert lines[0].startswith("kgnavbench table --preset quick ") and lines[0].endswith(
+        "--job 1  # Random walk (seed 0)"
+    )
+    assert lines[-1].endswith("--job 27  # +KG+Attention (seed 2)")
+    assert main(["table", "--preset", "quick", "--runs", str(tmp_path), "--job", "28"]) == 2
+    assert "jobs 1..27, not 28" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing written
 
 
 def test_table_errors_are_one_line(capsys, tmp_path):

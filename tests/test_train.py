@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -527,6 +528,32 @@ def test_corrupt_checkpoint_and_foreign_run_are_refused(capsys, tmp_path, floorp
     assert "not a training run" in capsys.readouterr().err
     assert main(["eval", "--method", "kg_attention", "--run", str(run_dir), "--runs", str(tmp_path)]) == 2
     assert "trained 'lstm_a3c', not 'kg_attention'" in capsys.readouterr().err
+
+
+def test_a_second_trainer_on_a_run_in_use_is_refused_and_a_dead_ones_claim_taken_over(
+    capsys, tmp_path, floorplan1_tasks
+):
+    argv = _train(tmp_path)[3:]
+    assert main(argv) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    assert not (run_dir / "trainer.claim").exists()  # released when the run ended
+    (run_dir / "finished.json").unlink()
+    # another trainer, alive on this host, holds the run
+    holder = subprocess.Popen(["sleep", "60"])
+    claim = {"host": socket.gethostname(), "pid": holder.pid, "since": time.time()}
+    (run_dir / "trainer.claim").write_text(json.dumps(claim))
+    try:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"is in use by pid {holder.pid} on {socket.gethostname()}" in err and err.count("\n") == 1
+        assert not (run_dir / "finished.json").exists()  # nothing written
+    finally:
+        holder.kill()
+        holder.wait()
+    # its process is gone: the claim is stale, and the same command takes it over and finishes the run
+    assert main(argv) == 0
+    assert "finished lstm_a3c" in capsys.readouterr().out
+    assert (run_dir / "finished.json").exists() and not list(run_dir.glob("trainer.claim*"))
 
 
 # ----------------------------------------------------------------------------------------------------

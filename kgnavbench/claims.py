@@ -1,0 +1,118 @@
+"""Claims: one process at a time on one thing (a training run's directory, a job of a table), among
+the processes of one machine or of several machines that share the runs folder.
+
+A claim is a small JSON file (host, pid, start time) created with O_CREAT | O_EXCL, which the file
+system grants to one process only. It is released (deleted) when the work ends, or marked done where
+others must see that the work is finished (a table job). A claim whose process is gone, on this same
+host, is stale (a killed run): the next claimant moves it aside (a rename, which one process alone
+wins) and claims afresh. A claim from another host is never judged stale from here (its pid means
+nothing on this machine): the message names the host, and deleting the claim file frees it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+
+class ClaimError(RuntimeError):
+    """The thing is claimed by another live process (the message says which)."""
+
+
+def _me() -> dict:
+    return {"host": socket.gethostname(), "pid": os.getpid(), "since": round(time.time(), 3)}
+
+
+def read(path: Path) -> dict | None:
+    """The claim's record; None where there is none, or where it is unreadable (being written)."""
+    try:
+        record = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def stale(record: dict | None) -> bool:
+    """A claim of this host whose process is gone, and not done. Unreadable: not stale (it is being
+    written by the process that just created it)."""
+    if record is None or record.get("done"):
+        return False
+    pid = record.get("pid")
+    return record.get("host") == socket.gethostname() and isinstance(pid, int) and not _alive(pid)
+
+
+def claim(path: Path | str) -> bool:
+    """Claim `path` for this process: True if it is now ours; False if a live process (or a finished
+    piece of work, `done`) holds it. A stale claim is taken over."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(3):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            if not stale(read(path)):
+                return False
+            aside = path.with_name(f"{path.name}.stale-{os.getpid()}")
+            try:  # only one of the processes that found it stale moves it aside
+                os.rename(path, aside)
+            except FileNotFoundError:
+                return False
+            aside.unlink(missing_ok=True)
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(_me()) + "\n")
+        return True
+    return False
+
+
+def done(path: Path | str) -> None:
+    """Mark our claim done: it then stays, and no one takes it over."""
+    path = Path(path)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps({**_me(), "done": True}) + "\n")
+    os.replace(tmp, path)
+
+
+def release(path: Path | str) -> None:
+    """Give up our claim (if it is still ours)."""
+    path = Path(path)
+    record = read(path)
+    if record and record.get("pid") == os.getpid() and record.get("host") == socket.gethostname():
+        path.unlink(missing_ok=True)
+
+
+def describe(record: dict | None) -> str:
+    if record is None:
+        return "another process (its claim is being written)"
+    since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(record.get("since", 0)))
+    return f"pid {record.get('pid')} on {record.get('host')} since {since}"
+
+
+@contextmanager
+def held(path: Path | str, what: str):
+    """Hold the claim on `path` while the block runs; ClaimError naming the holder if another live
+    process holds it."""
+    path = Path(path)
+    if not claim(path):
+        raise ClaimError(
+            f"{what} is in use by {describe(read(path))}; wait for it to end (or, if that process is "
+            f"gone on another machine, delete {path})"
+        )
+    try:
+        yield
+    finally:
+        release(path)

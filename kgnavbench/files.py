@@ -1,0 +1,51 @@
+"""Small helpers every stage shares: atomic writes, the git revision of the checkout, and the first
+line of an error message. No stage's logic lives here."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import tempfile
+from pathlib import Path
+
+
+def atomic_write(path: Path, content) -> None:
+    """Write `content` (bytes, text, or a function save(binary file)) into a unique temporary file beside
+    `path`, then rename it over `path`: readers never see half a file, concurrent writers never share a
+    temporary file, a failure leaves the old file as it was. The one atomic writer of the package."""
+    if isinstance(content, str):
+        content = content.encode()
+    save = (lambda f: f.write(content)) if isinstance(content, bytes) else content
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            save(f)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def git_revision() -> str:
+    """The checkout's commit, saved in every run directory: HEAD's, with '-dirty' when tracked files
+    differ from it; 'unknown' outside a checkout."""
+
+    def git(*args: str) -> str:
+        out = subprocess.run(
+            ["git", *args], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=10
+        )
+        return out.stdout.strip()
+
+    try:
+        rev = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (rev + ("-dirty" if dirty else "")) if rev else "unknown"
+
+
+def first_line(error: BaseException) -> str:
+    """An exception's message cut to its first line (torch's load errors run to a page)."""
+    return (str(error).strip().splitlines() or [""])[0]
