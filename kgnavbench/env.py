@@ -42,6 +42,7 @@ Evaluation passes fixed episodes: reset(options={"episodes": [{"target": id, "st
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from gymnasium import spaces
@@ -73,6 +74,50 @@ IS_MOVE = np.isin(np.arange(len(ACTIONS)), MOVES)  # per action: a move (a faile
 
 class EnvError(ValueError):
     """Bad environment input: unknown option, target, success rule or episode."""
+
+
+def reward(first_arrival: np.ndarray, success: np.ndarray) -> np.ndarray:
+    """The task's reward: -0.01 per step, +0.01 on the first arrival at a goal state, +10 on success."""
+    return STEP_REWARD + ARRIVAL_REWARD * first_arrival + SUCCESS_REWARD * success
+
+
+class Transition(NamedTuple):
+    """What one action does to a batch of agents (arrays, one entry per agent)."""
+
+    next_state: np.ndarray
+    stop: np.ndarray  # the action was Stop
+    collided: np.ndarray  # a move that failed
+    on_goal: np.ndarray  # the next state is a goal state of the agent's target
+    first_arrival: np.ndarray  # ... and the episode had not been on one before
+    success: np.ndarray  # Stop on a goal state
+    reward: np.ndarray
+    terminated: np.ndarray  # success, or (stop_ends) any Stop
+    truncated: np.ndarray  # not terminated, and the cap reached
+
+
+def transition(next_state, ok, goal, state, action, row, arrived, steps, cap, stop_ends: bool) -> Transition:
+    """The state-graph step: the one transition the PettingZoo env and the trainer's navigators both
+    take. `next_state`, `ok` (S, 10): the graph's tables; `goal` (targets, S): goal states per target
+    row; per agent its `state`, `action`, target `row`, whether it `arrived` at a goal state before,
+    the actions it took before this one (`steps`) and its `cap`. Moves, OpenObject (with the auto-close
+    of the graph), Stop, rewards and termination all come from here; the callers only keep counts."""
+    nxt = next_state[state, action]
+    stop = action == STOP
+    on_goal = goal[row, nxt]
+    success = stop & on_goal
+    first_arrival = on_goal & ~arrived
+    terminated = success | (stop & stop_ends)
+    return Transition(
+        next_state=nxt,
+        stop=stop,
+        collided=IS_MOVE[action] & ~ok[state, action],
+        on_goal=on_goal,
+        first_arrival=first_arrival,
+        success=success,
+        reward=reward(first_arrival, success),
+        terminated=terminated,
+        truncated=~terminated & (steps + 1 >= cap),
+    )
 
 
 def parallel_env(**kwargs) -> NavigationEnv:
@@ -260,25 +305,27 @@ class NavigationEnv(ParallelEnv):
         if ((act < 0) | (act >= len(ACTIONS))).any():
             raise EnvError(f"actions must be integers 0..{len(ACTIONS) - 1}, got {act.tolist()}")
         idx = np.array(live, np.int64)
-        g = self.graph
-        state = self._state[idx]
-        row = self._row[idx]
-        nxt = g.next_state[state, act]
-        moved_ok = g.ok[state, act]
-        stop = act == STOP
-        on_goal = self._tables.goal[row, nxt]
-        success = stop & on_goal
+        t = transition(
+            self.graph.next_state,
+            self.graph.ok,
+            self._tables.goal,
+            self._state[idx],
+            act,
+            self._row[idx],
+            self._arrived[idx],
+            self._steps[idx],
+            self._cap[idx],
+            self.stop_ends,
+        )
         # a Stop that fails: the episode ends, or (stop_ends=False) nothing happens at all
+        nxt = t.next_state
         self._state[idx] = nxt
         self._steps[idx] += 1
-        self._path[idx] += ~stop
-        self._collisions[idx] += IS_MOVE[act] & ~moved_ok
-        first_arrival = on_goal & ~self._arrived[idx]
-        self._arrived[idx] |= on_goal
-        self._success[idx] = success
-        rewards_arr = STEP_REWARD + ARRIVAL_REWARD * first_arrival + SUCCESS_REWARD * success
-        terminated_arr = success | (stop & self.stop_ends)
-        truncated_arr = ~terminated_arr & (self._steps[idx] >= self._cap[idx])
+        self._path[idx] += ~t.stop
+        self._collisions[idx] += t.collided
+        self._arrived[idx] |= t.on_goal
+        self._success[idx] = t.success
+        rewards_arr, terminated_arr, truncated_arr = t.reward, t.terminated, t.truncated
 
         if live and live[0] == 0:
             self._trail.append(int(nxt[0]))

@@ -50,13 +50,12 @@ import torch
 import torch.nn.functional as F
 
 from . import claims, models
-from .env import ARRIVAL_REWARD, STEP_REWARD, SUCCESS_REWARD, SUCCESS_RULES, TRAINING_MAX_STEPS
+from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, reward, transition
 from .files import atomic_write, first_line, git_revision
 from .kitchens import KITCHEN_NAMES, check_name, object_types
 from .plugins import load_plugin
 from .tasks import (
     MIN_START_DISTANCE,
-    MOVES,
     STOP,
     KitchenTasks,
     load_task_file,
@@ -468,14 +467,8 @@ def build_space(
     )
 
 
-IS_MOVE = np.isin(np.arange(10), MOVES)
 NEAR_KEY = 1 << 20  # larger than any BFS distance
 CURRICULUM_REACH = 25  # actions: about the farthest training start (they lie 10-25 from the destination)
-
-
-def step_rewards(first_arrival: np.ndarray, success: np.ndarray) -> np.ndarray:
-    """The env's reward: -0.01 per step, +0.01 on the first arrival at a goal state, +10 on success."""
-    return STEP_REWARD + ARRIVAL_REWARD * first_arrival + SUCCESS_REWARD * success
 
 
 def arrays_state(owner, fields) -> dict:
@@ -554,24 +547,26 @@ class Navigators:
         """One action per agent (of idx, or all): rewards, terminated, truncated, as env.step."""
         sel = slice(None) if idx is None else idx
         sp = self.space
-        state, target = self.state[sel], self.target[sel]
-        nxt = sp.next_state[state, actions]
-        ok = sp.ok[state, actions]
-        stop = actions == STOP
-        on_goal = sp.goal[target, nxt]
-        success = stop & on_goal
-        first_arrival = on_goal & ~self.arrived[sel]
-        rewards = step_rewards(first_arrival, success)
-        self.state[sel] = nxt
+        t = transition(
+            sp.next_state,
+            sp.ok,
+            sp.goal,
+            self.state[sel],
+            actions,
+            self.target[sel],
+            self.arrived[sel],
+            self.steps[sel],
+            self.cap[sel],
+            self.stop_ends,
+        )
+        self.state[sel] = t.next_state
         self.steps[sel] += 1
-        self.path[sel] += ~stop
-        self.collisions[sel] += IS_MOVE[actions] & ~ok
-        self.arrived[sel] |= on_goal
-        self.success[sel] = success
-        self.episode_return[sel] += rewards
-        terminated = success | (stop & self.stop_ends)
-        truncated = ~terminated & (self.steps[sel] >= self.cap[sel])
-        return rewards, terminated, truncated
+        self.path[sel] += ~t.stop
+        self.collisions[sel] += t.collided
+        self.arrived[sel] |= t.on_goal
+        self.success[sel] = t.success
+        self.episode_return[sel] += t.reward
+        return t.reward, t.terminated, t.truncated
 
     def state_dict(self) -> dict:
         return arrays_state(self, self.FIELDS)
@@ -820,7 +815,7 @@ def relabel(states, actions, behaviour, goal: int) -> tuple[list[int], list[int]
     reached_before = np.concatenate([[states[0] == goal], np.logical_or.accumulate(on_goal)[:-1]])
     success = np.zeros(len(after), bool)
     success[-1] = True
-    rewards = step_rewards(on_goal & ~reached_before, success)
+    rewards = reward(on_goal & ~reached_before, success)
     return states, actions + [STOP], rewards, np.append(np.asarray(behaviour, np.float64), np.nan)
 
 
@@ -1140,7 +1135,7 @@ class Trainer:
                 if self.opts.tse_failures and states[last] != goal:
                     seqs.append(([int(states[last])], [STOP]))
                     goals.append(goal)
-                    rewards.append(step_rewards(np.zeros(1, bool), np.zeros(1, bool)))
+                    rewards.append(reward(np.zeros(1, bool), np.zeros(1, bool)))
                     behaviour.append(probs[last : last + 1].astype(np.float64))
                 states, actions, probs = states[last + 1 :], actions[last + 1 :], probs[last + 1 :]
             if len(actions) == 0:
