@@ -38,6 +38,7 @@ MoveBack / MoveLeft / RotateRight by priority, then reverse).
 
 from __future__ import annotations
 
+import dataclasses
 import gzip
 import hashlib
 import json
@@ -451,12 +452,17 @@ def walk_back_trajectory(graph: StateGraph, destination: int, n_steps: int) -> t
 
 @dataclass(frozen=True)
 class Target:
+    """A target of a kitchen: found in its state graph (`find_targets`), and, once the task file is
+    read (`load_tasks`), whether it is a training target and its fixed episodes' starts."""
+
     object_index: int
     object_id: str
     type: str
     kind: str  # "static" or "actionable"
-    destination: int  # state index
-    goal_states: tuple[int, ...]
+    destination: int  # state index; its view is the target image
+    goal_states: tuple[int, ...]  # every state where the target is visible
+    seen: bool = False  # a training target (False: held out as an unseen target)
+    starts: tuple[int, ...] = ()  # the fixed evaluation episodes' start states
 
 
 def find_targets(graph: StateGraph) -> list[Target]:
@@ -618,35 +624,21 @@ def kitchen_split(kitchen: str) -> str:
 # Everything an environment needs about one kitchen
 
 
-@dataclass(frozen=True)
-class TaskTarget:
-    """A target of the task file, resolved against the state graph."""
-
-    object_id: str
-    object_index: int
-    type: str
-    kind: str  # "static" / "actionable"
-    seen: bool  # a training target (False: held out as an unseen target)
-    destination: int  # state index; its view is the target image
-    goal_states: tuple[int, ...]  # every state where the target is visible
-    starts: tuple[int, ...]  # the fixed evaluation episodes' start states
-
-
 @dataclass
 class KitchenTasks:
     kitchen: str
     split: str  # train / val / test
     graph: StateGraph
-    targets: list[TaskTarget]
+    targets: list[Target]
     _dist: dict = field(default_factory=dict, repr=False)
 
-    def target(self, object_id: str) -> TaskTarget:
+    def target(self, object_id: str) -> Target:
         for t in self.targets:
             if t.object_id == object_id:
                 return t
         raise TaskError(f"{object_id!r} is not a target of {self.kitchen}")
 
-    def distances(self, target: TaskTarget, success_rule: str = "destination") -> np.ndarray:
+    def distances(self, target: Target, success_rule: str = "destination") -> np.ndarray:
         """BFS distance of every state to the target's goal states ('visible': any state that shows
         it; 'destination': the destination only). Computed once per target and rule."""
         if success_rule not in ("visible", "destination"):
@@ -657,7 +649,7 @@ class KitchenTasks:
             self._dist[key] = bfs_distances(self.graph.next_state, goal_mask(self.graph.n_states, goals))
         return self._dist[key]
 
-    def training_starts(self, target: TaskTarget) -> np.ndarray:
+    def training_starts(self, target: Target) -> np.ndarray:
         """The states a training episode of the target may start from (the env's and the trainer's
         draws): closed, at pitch 0, the target not in view, at least MIN_START_DISTANCE actions from
         its destination; where no state is that far, the farthest such states. Computed once."""
@@ -670,7 +662,7 @@ class KitchenTasks:
             self._dist[key] = far if len(far) else np.flatnonzero(ok & (d == d[ok].max()))
         return self._dist[key]
 
-    def curriculum_starts(self, target: TaskTarget) -> tuple[np.ndarray, np.ndarray]:
+    def curriculum_starts(self, target: Target) -> tuple[np.ndarray, np.ndarray]:
         """Start states for a curriculum on start distance, nearest first, and their BFS distances to
         the destination: the states with no receptacle open at pitch 0, as the training starts, but
         the target may be in view and the destination itself is one (where it is closed at pitch 0).
@@ -733,11 +725,7 @@ def load_tasks(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = Non
                 f"target {t['object']} of {kitchen} no longer matches the state graph; run `make tasks`"
             )
         starts = tuple(t["starts"])
-        targets.append(
-            TaskTarget(
-                f.object_id, f.object_index, f.type, f.kind, t["seen"], f.destination, f.goal_states, starts
-            )
-        )
+        targets.append(dataclasses.replace(f, seen=t["seen"], starts=starts))
     return KitchenTasks(kitchen, kitchen_split(kitchen), graph, targets)
 
 

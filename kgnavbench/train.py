@@ -1222,7 +1222,7 @@ class Trainer:
         rows = [(r, s) for r, starts in enumerate(sp.fixed_starts) for s in starts[: self.opts.val_episodes]]
         targets = np.array([r for r, _ in rows], np.int64)
         starts = np.array([s for _, s in rows], np.int64)
-        return run_episodes(self.model, sp, targets, starts, VALIDATION_CAP, self.run.seed, None)
+        return run_episodes(self.model, sp, targets, starts, VALIDATION_CAP, self.run.seed)
 
     # -- checkpoints -----------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -1269,10 +1269,10 @@ class Trainer:
         self.best_val_sr, self.stats = ck["best_val_sr"], dict(ck["stats"])
 
 
-def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, seed: int, scene_of=None):
+def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, seed: int):
     """Run fixed episodes (target rows, start states) to the end with the model's sampled actions;
-    returns SR and SPL in percent and the frames taken. `scene_of` maps the space's kitchens to FF
-    scene ids (None: scene 0)."""
+    returns SR and SPL in percent and the frames taken. FF's scene-specific layers: the first training
+    kitchen's (the validation kitchens have none of their own)."""
     n = len(targets)
     nav = Navigators(space, space.target_kitchen[targets])
     nav.begin(np.arange(n), targets, starts, cap)
@@ -1280,7 +1280,7 @@ def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, see
     hidden = model.net.initial_state(n)
     ff = model.config.arch == "ff"
     history = np.repeat(starts[:, None], model.config.history, 1) if ff else None
-    scene = np.zeros(n, np.int64) if scene_of is None else np.asarray(scene_of)[nav.kitchen]
+    scene = np.zeros(n, np.int64)
     live = np.ones(n, bool)
     frames = 0
     with torch.no_grad():
