@@ -55,10 +55,12 @@ from .tasks import (
     MOVES,
     OPEN,
     STOP,
+    SUCCESS_RULES,
     VIEW_SIZE,
     KitchenTasks,
     TaskError,
     expert_actions,
+    goal_mask,
     load_tasks,
 )
 from .world import ACTIONS
@@ -67,7 +69,6 @@ STEP_REWARD = -0.01
 ARRIVAL_REWARD = 0.01
 SUCCESS_REWARD = 10.0
 TRAINING_MAX_STEPS = 5000
-SUCCESS_RULES = ("visible", "destination")
 TARGET_SETS = ("seen", "unseen", "all")
 IS_MOVE = np.isin(np.arange(len(ACTIONS)), MOVES)  # per action: a move (a failed one is a collision)
 
@@ -233,7 +234,7 @@ class NavigationEnv(ParallelEnv):
             g = np.zeros(n, bool)
             g[list(t.goal_states)] = True
             visible.append(g)
-            goal.append(g if self.success_rule == "visible" else np.eye(1, n, t.destination, bool)[0])
+            goal.append(goal_mask(n, t.goals(self.success_rule)))
             d = self.tasks.distances(t, self.success_rule)
             dist.append(d)
             expert.append(expert_actions(self.graph.next_state, d))

@@ -83,6 +83,7 @@ MOVES = tuple(ACTIONS.index(a) for a in ("MoveAhead", "MoveBack", "MoveRight", "
 VIEW_SIZE = 84
 GRAPH_VERSION = 2  # bump when build_state_graph changes what it produces
 N_TRAIN_KITCHENS, N_VAL_KITCHENS = 20, 5
+SUCCESS_RULES = ("visible", "destination")  # see Target.goals
 SEEN_TARGETS_PER_KITCHEN = 7  # the paper: 140 training targets in 20 training kitchens
 EPISODES_PER_TARGET = 100
 MIN_START_DISTANCE = 10
@@ -464,6 +465,16 @@ class Target:
     seen: bool = False  # a training target (False: held out as an unseen target)
     starts: tuple[int, ...] = ()  # the fixed evaluation episodes' start states
 
+    def goals(self, success_rule: str) -> tuple[int, ...]:
+        """The states where Stop succeeds: 'destination' (the paper's rule) its destination only, the
+        place its image shows; 'visible' (SAVN's) any state that shows it. The one place the success
+        rules are spelled; the env, the trainer and the distances all ask here."""
+        if success_rule == "destination":
+            return (self.destination,)
+        if success_rule == "visible":
+            return self.goal_states
+        raise TaskError(f"unknown success rule {success_rule!r}; choose one of {SUCCESS_RULES}")
+
 
 def find_targets(graph: StateGraph) -> list[Target]:
     """Static and actionable targets of the kitchen's start scene, each with its destination."""
@@ -641,11 +652,9 @@ class KitchenTasks:
     def distances(self, target: Target, success_rule: str = "destination") -> np.ndarray:
         """BFS distance of every state to the target's goal states ('visible': any state that shows
         it; 'destination': the destination only). Computed once per target and rule."""
-        if success_rule not in ("visible", "destination"):
-            raise TaskError(f"unknown success rule {success_rule!r}; choose 'visible' or 'destination'")
+        goals = target.goals(success_rule)
         key = (target.object_id, success_rule)
         if key not in self._dist:
-            goals = target.goal_states if success_rule == "visible" else (target.destination,)
             self._dist[key] = bfs_distances(self.graph.next_state, goal_mask(self.graph.n_states, goals))
         return self._dist[key]
 

@@ -422,10 +422,7 @@ def build_space(
         g = kt.graph
         m = g.n_states
         visible[r, off + np.array(t.goal_states)] = True
-        if success_rule == "visible":
-            goal[r] = visible[r]
-        else:
-            goal[r, off + t.destination] = True
+        goal[r, off + np.array(t.goals(success_rule))] = True
         dist[r, off : off + m] = kt.distances(t, success_rule)
         far = kt.training_starts(t)  # the env draws its training starts from the same states
         starts.append(far + off)
