@@ -875,9 +875,9 @@ class Model:
             target = space.features_t[torch.from_numpy(np.ascontiguousarray(distinct))]
         return view, target, target_rows, space.objects_t[s], space.objects_t[g]
 
-    def __call__(self, space: StateSpace, states, goals, hidden, adjacency, scene=None, history=None):
+    def __call__(self, space: StateSpace, states, goals, hidden, graph, scene=None, history=None):
         """One forward pass: agents in `states` (or their frame `history` (B, H) for FF) toward the
-        target images of `goals` (states)."""
+        target images of `goals` (states); `graph`: the knowledge graph's terms (`Model.graph`)."""
         view, target, target_rows, r_t, r_g = self.inputs(space, states, goals, history)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
             logits, value, hidden, extras = self.net(
@@ -886,13 +886,13 @@ class Model:
                 r_t,
                 r_g,
                 hidden,
-                adjacency=adjacency,
+                adjacency=graph,
                 scene=None if scene is None else torch.from_numpy(np.ascontiguousarray(scene)),
                 target_rows=target_rows,
             )
         return logits.float(), value.float(), hidden, extras
 
-    def unroll(self, space: StateSpace, states, goals, hidden, keep, adjacency, scene=None, history=None):
+    def unroll(self, space: StateSpace, states, goals, hidden, keep, graph, scene=None, history=None):
         """The network over T steps of B agents at once, for learning: states and goals (T, B) (FF:
         history (T, B, H)), the LSTM state before the first step, keep (T, B) 0 where an episode ended
         at that step (the state is zeroed after it; None: no ends). The parts that do not recur run
@@ -902,7 +902,7 @@ class Model:
         flat = history.reshape(n * b, -1) if history is not None else None
         view, target, target_rows, r_t, r_g = self.inputs(space, states.reshape(-1), goals.reshape(-1), flat)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
-            joint, _ = self.net.encode(view, target, r_t, r_g, adjacency, target_rows)
+            joint, _ = self.net.encode(view, target, r_t, r_g, graph, target_rows)
             if self.config.arch != "lstm":
                 scenes = torch.from_numpy(np.ascontiguousarray(np.tile(scene, n)))
                 logits, values, _ = self.net.act(joint, None, scenes)
@@ -987,12 +987,12 @@ class Trainer:
     # -- one update ------------------------------------------------------------------------------
     def update(self) -> None:
         """One rollout of every agent (or, IL only, one expert batch) and one gradient step."""
-        adjacency = self.model.graph()
+        graph = self.model.graph()
         loss = torch.zeros(())
         imitate = self.il and (not self.rl or self.frames < self.opts.il_frames)
         self.nav.stop_ends = self.opts.stop_ends_from is not None and self.frames >= self.opts.stop_ends_from
         if self.rl or self.dagger:
-            rl_loss, il_loss = self.rollout(adjacency, imitate and self.dagger)
+            rl_loss, il_loss = self.rollout(graph, imitate and self.dagger)
             if self.rl:
                 loss = loss + rl_loss
                 self.stats["rl"] += rl_loss.item()
@@ -1002,7 +1002,7 @@ class Trainer:
                 self.stats["il"] += il_loss.item()
                 self.stats["losses_il"] += 1
         if imitate and not self.dagger:
-            il_loss, n_frames = self.imitation(adjacency)
+            il_loss, n_frames = self.imitation(graph)
             loss = loss + self.opts.il_weight * il_loss
             self.stats["il"] += il_loss.item()
             self.stats["losses_il"] += 1
@@ -1010,7 +1010,7 @@ class Trainer:
                 self.frames += n_frames
                 self.stats["frames"] += n_frames
         if self.rl and self.opts.tse:
-            tse_loss = self.skill_extension(adjacency)
+            tse_loss = self.skill_extension(graph)
             if tse_loss is not None:
                 loss = loss + self.opts.tse_weight * tse_loss
                 self.stats["tse"] += tse_loss.item()
@@ -1021,7 +1021,7 @@ class Trainer:
         self.optimizer.step()
         self.updates += 1
 
-    def rollout(self, adjacency, imitate: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def rollout(self, graph, imitate: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
         """n steps of every agent, then the learning pass over them; returns the A2C loss of the
         rollout and, when `imitate`, the cross-entropy of the teacher's actions on every visited state
         (DAgger). The steps run without autograd (acting needs no graph); `Model.unroll` then replays
@@ -1044,9 +1044,7 @@ class Trainer:
                 if self.ff:
                     histories[t] = self.history
                 goals = space.destination[nav.target]
-                logits, _, hidden, _ = self.model(
-                    space, nav.state, goals, hidden, adjacency, scene, self.history
-                )
+                logits, _, hidden, _ = self.model(space, nav.state, goals, hidden, graph, scene, self.history)
                 probs = F.softmax(logits, -1)
                 action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
                 a = action.numpy()
@@ -1076,7 +1074,7 @@ class Trainer:
                     self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
                     self.history[finished] = nav.state[finished, None]
             goals = space.destination[nav.target]
-            _, bootstrap, _, _ = self.model(space, nav.state, goals, hidden, adjacency, scene, self.history)
+            _, bootstrap, _, _ = self.model(space, nav.state, goals, hidden, graph, scene, self.history)
         self.hidden = hidden
         if self.model.uses_graph:
             self.model.covis.add(space.objects[reached.reshape(-1)])
@@ -1086,7 +1084,7 @@ class Trainer:
         # the learning pass: the same n steps again, with autograd
         keep = torch.from_numpy(1.0 - dones)
         logits, values = self.model.unroll(
-            space, states, space.destination[targets], start_hidden, keep, adjacency, scene, histories
+            space, states, space.destination[targets], start_hidden, keep, graph, scene, histories
         )
         log_p = F.log_softmax(logits, -1)
         taken = log_p.gather(2, torch.from_numpy(actions)[..., None]).squeeze(2)
@@ -1151,7 +1149,7 @@ class Trainer:
             seq.rewards[i, : len(r)], seq.behaviour[i, : len(mu)] = r, mu
         return seq
 
-    def sequence_pass(self, seq: Sequences, adjacency):
+    def sequence_pass(self, seq: Sequences, graph):
         """A separate pass of the model over padded sequences from a zero state: logits (L, N, 10),
         values (L, N)."""
         n, length = seq.states.shape
@@ -1163,9 +1161,9 @@ class Trainer:
             history = np.ascontiguousarray(np.transpose(seq.states[:, np.clip(back, 0, None)], (1, 0, 2)))
         scene = self.space.kitchen_of[seq.states[:, 0]] if self.ff else None
         hidden = self.model.net.initial_state(n)
-        return self.model.unroll(self.space, states, goals, hidden, None, adjacency, scene, history)
+        return self.model.unroll(self.space, states, goals, hidden, None, graph, scene, history)
 
-    def imitation(self, adjacency) -> tuple[torch.Tensor, int]:
+    def imitation(self, graph) -> tuple[torch.Tensor, int]:
         """Cross-entropy on il_batch expert trajectories drawn at random."""
         ex = self.experts
         n = len(ex.goal)
@@ -1173,17 +1171,17 @@ class Trainer:
         seq = Sequences(ex.states[take], ex.actions[take], ex.mask[take], ex.goal[take])
         last = int(seq.mask.sum(1).max())
         seq = Sequences(seq.states[:, :last], seq.actions[:, :last], seq.mask[:, :last], seq.goal)
-        logits, _ = self.sequence_pass(seq, adjacency)
+        logits, _ = self.sequence_pass(seq, graph)
         mask = torch.from_numpy(seq.mask.T.astype(np.float32))
         return imitation_loss(logits, torch.from_numpy(seq.actions.T.copy()), mask), int(seq.mask.sum())
 
-    def skill_extension(self, adjacency) -> torch.Tensor | None:
+    def skill_extension(self, graph) -> torch.Tensor | None:
         """A2C's loss on this rollout's relabelled sub-trajectories (whole episodes: Monte-Carlo
         returns), optionally with truncated importance weights min(1, pi/mu)."""
         seq = self.subtrajectories()
         if seq is None:
             return None
-        logits, values = self.sequence_pass(seq, adjacency)
+        logits, values = self.sequence_pass(seq, graph)
         log_p = F.log_softmax(logits, -1)
         actions = torch.from_numpy(seq.actions.T.copy())
         taken = log_p.gather(2, actions[..., None]).squeeze(2)
@@ -1281,7 +1279,7 @@ def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, see
     live = np.ones(n, bool)
     frames = 0
     with torch.no_grad():
-        adjacency = model.graph()
+        graph = model.graph()
         while live.any():
             idx = np.flatnonzero(live)
             goals = space.destination[nav.target[idx]]
@@ -1290,7 +1288,7 @@ def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, see
                 nav.state[idx],
                 goals,
                 _rows(hidden, idx),
-                adjacency,
+                graph,
                 scene[idx] if ff else None,
                 history[idx] if ff else None,
             )
@@ -1477,7 +1475,7 @@ class LearnedPolicy:
         covis.load_state_dict(ck["covis"])
         self.model = Model(net, self.config, covis, ck["options"].get("bf16", False))
         with torch.no_grad():
-            self.adjacency = self.model.graph()
+            self.graph = self.model.graph()
         self.training_kitchens = list(ck["kitchens"])
         self.success_rule = ck["options"].get("success_rule", "destination")
         self.generator = torch.Generator().manual_seed(seed)
@@ -1547,7 +1545,7 @@ class LearnedPolicy:
         scene = np.full(len(agents), self.scene, np.int64) if self.config.arch == "ff" else None
         with torch.no_grad():
             logits, _, rows, extras = self.model(
-                self.space, states, goals, _rows(self.hidden, slots), self.adjacency, scene, history
+                self.space, states, goals, _rows(self.hidden, slots), self.graph, scene, history
             )
             actions = torch.multinomial(F.softmax(logits, -1), 1, generator=self.generator).squeeze(1)
         if self.hidden is not None:
