@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import csv
+import functools
 import io
 import multiprocessing
 import os
@@ -114,6 +115,11 @@ class Preset:
     eval_kitchens: tuple[str, ...]  # empty: Table I's kitchens (train + test)
     options: dict[str, str]  # training options for every learned row (`set`)
     rows: tuple[str, ...] = ()  # the rows this preset runs, by name; empty: every row of the spec
+
+    @property
+    def threads(self) -> int:
+        """torch's threads in every job (the `threads` training option; 0: not set, torch's own)."""
+        return int(self.options.get("threads", "0"))
 
 
 @dataclass(frozen=True)
@@ -437,7 +443,19 @@ def time_left(done: list[tuple[bool, float]], todo: list[bool]) -> float | None:
     return left
 
 
-def _job(spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path, progress, threads: int):
+class JobOutcome(NamedTuple):
+    """What the table keeps of one job."""
+
+    cells: dict[str, list[EpisodeValue]]  # "column/kind" -> its episodes
+    train_run: str  # "" for a method that does not train
+    eval_run: str
+    seconds: float
+    reused: bool  # found done on disk: its seconds say nothing about a job of its kind
+
+
+def _job(
+    spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path, progress, threads: int
+) -> JobOutcome:
     """One row and seed, trained (or found) and evaluated: what the table keeps of it. Runs in the
     table's process or in a worker process (with `threads` torch threads: 1 where jobs run side by
     side, so that they do not wait on each other's cores)."""
@@ -454,23 +472,13 @@ def _job(spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path, p
         reused = (run_dir / "finished.json").stat().st_mtime < started
     else:
         reused = len(run.resumed) == len(run.config.kitchen_list())
-    return (
+    return JobOutcome(
         cell_episodes(run.results),
         str(run_dir) if run_dir else "",
         str(run.directory),
         time.perf_counter() - t0,
         reused,
     )
-
-
-class _Prefixed:
-    """A worker's progress lines, each prefixed with its job (lines of two jobs interleave)."""
-
-    def __init__(self, prefix: str):
-        self.prefix = prefix
-
-    def __call__(self, line: str) -> None:
-        print(f"{self.prefix} {line}", flush=True)
 
 
 def preset_rows(spec: TableSpec, preset: Preset) -> list[Row]:
@@ -517,7 +525,7 @@ def run_job(
         raise TableError(f"preset {preset.name!r} has jobs 1..{len(jobs)}, not {number}")
     row, seed = jobs[number - 1]
     progress(f"== [{number}/{len(jobs)}] {row.name} (seed {seed})")
-    _job(spec, preset, row, seed, Path(runs_dir), progress, int(preset.options.get("threads", "0")))
+    _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads)
 
 
 def run_worker(spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs", progress=print) -> list[int]:
@@ -527,7 +535,6 @@ def run_worker(spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs",
     dead worker's claim on this host is taken over)."""
     preset = _preset(spec, preset_name)
     jobs = table_jobs(spec, preset)
-    threads = int(preset.options.get("threads", "0"))
     ran = []
     for n, (row, seed) in enumerate(jobs):
         path = job_claim(runs_dir, preset, n, row, seed)
@@ -535,7 +542,7 @@ def run_worker(spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs",
             continue
         try:
             progress(f"== [{n + 1}/{len(jobs)}] {row.name} (seed {seed}): claimed by pid {os.getpid()}")
-            _job(spec, preset, row, seed, Path(runs_dir), progress, threads)
+            _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads)
         except BaseException:
             claims.release(path)
             raise
@@ -561,10 +568,10 @@ def run_table(
     rows = preset_rows(spec, preset)
     jobs = table_jobs(spec, preset)
     kinds = [_trains(row) for row, _ in jobs]
-    outcomes: list[tuple | None] = [None] * len(jobs)
+    outcomes: list[JobOutcome | None] = [None] * len(jobs)
     # torch's threads in every job, training (the option) and evaluation alike: the spec's, so that a
     # job's numbers do not depend on how many run at once (threads change the sums' order)
-    threads = int(preset.options.get("threads", "0"))
+    threads = preset.threads
     done: list[tuple[bool, float]] = []
 
     def eta() -> str:
@@ -579,8 +586,8 @@ def run_table(
         for n, (row, seed) in enumerate(jobs):
             progress(f"== {title(n)}{eta()}")
             outcomes[n] = _job(spec, preset, row, seed, runs_dir, progress, threads)
-            if not outcomes[n][4]:
-                done.append((kinds[n], outcomes[n][3]))
+            if not outcomes[n].reused:
+                done.append((kinds[n], outcomes[n].seconds))
     else:
         # spawn: a fresh interpreter per worker (torch's thread pools do not survive a fork)
         progress(f"== {len(jobs)} jobs, {workers} at a time, torch on one thread each")
@@ -591,21 +598,24 @@ def run_table(
             # spec add components (IL, TSE, the graph) and train slower
             for n in reversed(range(len(jobs))):
                 row, seed = jobs[n]
-                prefix = _Prefixed(f"[{n + 1}/{len(jobs)}] {row.name} (seed {seed}):")
+                # a worker's lines, prefixed with its job (two jobs' lines interleave); picklable
+                prefix = functools.partial(
+                    print, f"[{n + 1}/{len(jobs)}] {row.name} (seed {seed}):", flush=True
+                )
                 pending[pool.submit(_job, spec, preset, row, seed, runs_dir, prefix, threads or 1)] = n
             for future in concurrent.futures.as_completed(pending):
                 n = pending[future]
                 outcomes[n] = future.result()
-                if not outcomes[n][4]:
-                    done.append((kinds[n], outcomes[n][3]))
-                progress(f"== done {title(n)} in {outcomes[n][3] / 60:.1f} min{eta()}")
+                if not outcomes[n].reused:
+                    done.append((kinds[n], outcomes[n].seconds))
+                progress(f"== done {title(n)} in {outcomes[n].seconds / 60:.1f} min{eta()}")
     per_row: dict[str, RowResult] = {}
-    for (row, _), (cells, train_run, eval_run, seconds, _) in zip(jobs, outcomes, strict=True):
+    for (row, _), outcome in zip(jobs, outcomes, strict=True):
         result = per_row.setdefault(row.name, RowResult(row, [], [], [], 0.0))
-        result.episodes.append(cells)
-        result.train_runs.append(train_run)
-        result.eval_runs.append(eval_run)
-        result.seconds += seconds
+        result.episodes.append(outcome.cells)
+        result.train_runs.append(outcome.train_run)
+        result.eval_runs.append(outcome.eval_run)
+        result.seconds += outcome.seconds
     results = [per_row[row.name] for row in rows]
     return TableResult(spec, preset, results, time.perf_counter() - start, git_revision())
 
