@@ -67,7 +67,7 @@ screenshot: $(STAMP)
 
 ## encoder: retrain the committed view encoder kgnavbench/data/encoder.pt (deterministic, ~3 min)
 encoder: $(STAMP)
-	$(BIN)/python -m kgnavbench.models pretrain
+	$(BIN)/kgnavbench encoder pretrain
 
 ## bench: speed figures with units
 bench: $(STAMP)

@@ -16,6 +16,8 @@
                      [--jobs | --job N | --worker]
     kgnavbench figures [--preset quick] [--runs DIR] [--out DIR]
     kgnavbench view FILE.rrd
+    kgnavbench encoder pretrain [--epochs N] [--samples-per-epoch N] [--shift PX] [--seed S] [--out FILE]
+    kgnavbench encoder features [NAME ...]
 
 Bad input (an unknown kitchen or action, an unreachable start, a malformed pose, an out-of-range size,
 an unusable output folder) prints one line ``kgnavbench: error: ...`` to stderr and exits with status 2.
@@ -421,6 +423,33 @@ def cmd_view(args: argparse.Namespace) -> int:
         raise UsageError(str(e)) from e
 
 
+def cmd_encoder(args: argparse.Namespace) -> int:
+    # torch loads only for the commands that need it
+    import torch
+
+    from .encoder import ENCODER_FILE, EncoderError, pretrain_encoder, state_features
+
+    try:
+        if args.action == "pretrain":
+            pretrain_encoder(
+                epochs=args.epochs,
+                seed=args.seed,
+                out=args.out or ENCODER_FILE,
+                samples_per_epoch=args.samples_per_epoch,
+                shift=args.shift,
+            )
+            return 0
+        torch.set_num_threads(min(2, os.cpu_count() or 1))
+        for kitchen in args.kitchens or KITCHEN_NAMES:
+            start = time.perf_counter()
+            n = len(state_features(check_name(kitchen)))
+            seconds = time.perf_counter() - start
+            print(f"{kitchen:12s} {n:6d} states  {seconds:5.1f} s  ({n / max(seconds, 1e-9):,.0f} states/s)")
+    except EncoderError as e:
+        raise UsageError(str(e)) from e
+    return 0
+
+
 def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
     from .table import (
@@ -707,6 +736,24 @@ def build_parser() -> argparse.ArgumentParser:
         "one per machine or core that shares the runs folder, then run `table` to assemble",
     )
     p.set_defaults(func=cmd_table)
+
+    p = sub.add_parser(
+        "encoder",
+        help="retrain the frozen view encoder, or encode every state's view (cached)",
+        description="pretrain: train the view encoder on the training kitchens' views (supervised: "
+        "visible types, pitch, open receptacle) and write it; features: encode every state's view of "
+        "the kitchens once, into the cache beside their state graphs.",
+    )
+    actions = p.add_subparsers(dest="action", required=True, parser_class=_Parser)
+    q = actions.add_parser("pretrain", help="train the view encoder on the training kitchens' views")
+    q.add_argument("--epochs", type=_positive, default=8)
+    q.add_argument("--samples-per-epoch", type=_positive, default=16_000)
+    q.add_argument("--shift", type=int, default=4, help="random shift of the views in pixels (0: none)")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--out", type=Path, help="where the weights go (default: the committed encoder file)")
+    q = actions.add_parser("features", help="encode every state's view of the kitchens, cached")
+    q.add_argument("kitchens", nargs="*", metavar="NAME", help="default: all 30")
+    p.set_defaults(func=cmd_encoder)
     return parser
 
 

@@ -42,28 +42,28 @@ import math
 import random
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import claims, models
-from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, reward, transition
+from . import claims, encoder, models
+from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, reward
 from .files import atomic_write, first_line, git_revision
 from .kitchens import KITCHEN_NAMES, check_name, object_types
 from .plugins import load_plugin
 from .tasks import (
     MIN_START_DISTANCE,
     STOP,
-    KitchenTasks,
     load_task_file,
     load_tasks,
     optimal_action_mask,
     shortest_trajectory,
     walk_back_trajectory,
 )
+from .vecenv import CURRICULUM_REACH, Navigators, StateSpace, arrays_state, build_space, load_arrays
 
 CHECKPOINT_FORMAT = 1
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
@@ -234,7 +234,7 @@ def training_kitchens(kitchens=()) -> tuple[str, ...]:
 # the library code that decides a run's numbers besides the plugin: the training starts and the state
 # graphs' semantics, the env's rewards, the models and this trainer (kitchens, world and render reach a
 # run through the state-graph cache, which is keyed by their own fingerprint)
-TRAINING_CODE = ("tasks.py", "env.py", "models.py", "train.py")
+TRAINING_CODE = ("tasks.py", "encoder.py", "env.py", "vecenv.py", "models.py", "train.py")
 
 
 def training_code_sha256(package: Path = Path(__file__).parent) -> str:
@@ -330,250 +330,6 @@ def _train_in(directory: Path, hook, config, record: dict, run: Run) -> Path:
         atomic_write(config_path, json.dumps({**record, "git_revision": git_revision()}, indent=2) + "\n")
     hook(config, run)
     return directory
-
-
-# ------------------------------------------------------------------------------------------------
-# 2. The state space: the kitchens' state graphs as one, and navigators stepping in it
-
-
-@dataclass
-class StateSpace:
-    """Several kitchens' state graphs as one: global state = kitchen offset + local state."""
-
-    kitchens: list[str]
-    offsets: np.ndarray  # (K + 1,)
-    next_state: np.ndarray  # (S, 10) global next state per action
-    ok: np.ndarray  # (S, 10) the action succeeded
-    objects: np.ndarray  # (S, 125) uint8, visible object types
-    features: np.ndarray  # (S, F) float16, the frozen encoder's features of each state's view
-    kitchen_of: np.ndarray  # (S,)
-    closed: np.ndarray  # (S,) no receptacle open
-    # targets: one row per target
-    target_ids: list[str]
-    target_kitchen: np.ndarray  # (T,)
-    target_type: np.ndarray  # (T,) object type index
-    destination: np.ndarray  # (T,) global state
-    goal: np.ndarray  # (T, S) success states under the rule (for the +0.01 and +10)
-    visible: np.ndarray  # (T, S) the target is in view
-    dist: np.ndarray  # (T, S) int32 BFS actions to a goal state (-1: none)
-    start_flat: np.ndarray  # training starts of target t: start_flat[start_ptr[t]:start_ptr[t + 1]]
-    start_ptr: np.ndarray
-    # a curriculum's starts of target t, nearest first: near_flat[near_ptr[t]:near_ptr[t + 1]], and
-    # near_key = t * NEAR_KEY + distance to the destination, sorted, for one searchsorted per draw
-    near_flat: np.ndarray
-    near_ptr: np.ndarray
-    near_key: np.ndarray
-    fixed_starts: list[tuple[int, ...]]  # the task file's episodes (global states)
-    kitchen_rows: np.ndarray  # target rows of kitchen k: kitchen_rows[kitchen_ptr[k]:kitchen_ptr[k + 1]]
-    kitchen_ptr: np.ndarray
-    tse_types: np.ndarray  # (K, 125) novel objects: pickupable types that are no target (build_space)
-    tasks: list[KitchenTasks] = field(repr=False)
-    views: np.ndarray | None = field(default=None, repr=False)  # (S, 84, 84, 3) uint8, pixel models
-
-    @property
-    def n_states(self) -> int:
-        return len(self.next_state)
-
-    def __post_init__(self) -> None:
-        # standardized with the encoder's statistics of the training kitchens (models.standardize)
-        self.features_t = models.standardize(self.features, models.encoder_feature_stats())
-        self.objects_t = torch.from_numpy(self.objects.astype(np.float32))
-
-
-def build_space(
-    kitchens,
-    targets: str = "seen",
-    success_rule: str = "destination",
-    pixels: bool = False,
-    unseen_subtargets: bool = False,
-) -> StateSpace:
-    """Load the kitchens' state graphs, features and targets ('seen': training targets; 'all'), and
-    with `pixels` their views. TSE's novel objects (`tse_types`) are the pickupable types that are no
-    training target of the kitchen and, unless `unseen_subtargets`, no unseen target of it either."""
-    types = {t: i for i, t in enumerate(object_types())}
-    parts, rows, offsets, all_tasks = [], [], [0], []
-    tse_types = np.zeros((len(kitchens), len(types)), bool)
-    for k, name in enumerate(kitchens):
-        kt = load_tasks(name)
-        g, off = kt.graph, offsets[-1]
-        feats = np.asarray(models.state_features(name))
-        if feats.shape[0] != g.n_states:
-            raise TrainError(f"features of {name} have {feats.shape[0]} rows for {g.n_states} states")
-        chosen = [t for t in kt.targets if targets == "all" or t.seen]
-        if not chosen:
-            raise TrainError(f"{name} has no {targets} targets")
-        training_types = {t.type for t in kt.targets if t.seen}
-        held_out = set() if unseen_subtargets else {t.type for t in kt.targets if not t.seen}
-        for o in g.world.objects:
-            if o.pickupable and o.type not in training_types and o.type not in held_out:
-                tse_types[k, types[o.type]] = True
-        parts.append((g, feats, kt))
-        rows += [(k, off, kt, t) for t in chosen]
-        offsets.append(off + g.n_states)
-        all_tasks.append(kt)
-    n = offsets[-1]
-    n_targets = len(rows)
-    goal = np.zeros((n_targets, n), bool)
-    visible = np.zeros((n_targets, n), bool)
-    dist = np.full((n_targets, n), -1, np.int32)
-    starts, start_ptr, fixed = [], [0], []
-    near, near_ptr, near_key = [], [0], []
-    for r, (_, off, kt, t) in enumerate(rows):
-        g = kt.graph
-        m = g.n_states
-        visible[r, off + np.array(t.goal_states)] = True
-        goal[r, off + np.array(t.goals(success_rule))] = True
-        dist[r, off : off + m] = kt.distances(t, success_rule)
-        far = kt.training_starts(t)  # the env draws its training starts from the same states
-        starts.append(far + off)
-        start_ptr.append(start_ptr[-1] + len(far))
-        fixed.append(tuple(int(s) + off for s in t.starts))
-        ladder, ladder_dist = kt.curriculum_starts(t)
-        near.append(ladder + off)
-        near_ptr.append(near_ptr[-1] + len(ladder))
-        near_key.append(r * NEAR_KEY + ladder_dist)
-    target_kitchen = np.array([r[0] for r in rows], np.int64)
-    order = np.argsort(target_kitchen, kind="stable")
-    return StateSpace(
-        kitchens=list(kitchens),
-        offsets=np.array(offsets, np.int64),
-        next_state=np.concatenate([g.next_state + off for (g, _, _), off in zip(parts, offsets)]),
-        ok=np.concatenate([g.ok for g, _, _ in parts]),
-        objects=np.concatenate([g.object_vectors for g, _, _ in parts]),
-        features=np.concatenate([f for _, f, _ in parts]),
-        views=np.concatenate([g.views for g, _, _ in parts]) if pixels else None,
-        kitchen_of=np.repeat(np.arange(len(kitchens)), np.diff(offsets)),
-        closed=np.concatenate([g.opened < 0 for g, _, _ in parts]),
-        target_ids=[t.object_id for _, _, _, t in rows],
-        target_kitchen=target_kitchen,
-        target_type=np.array([types[t.type] for _, _, _, t in rows], np.int64),
-        destination=np.array([off + t.destination for _, off, _, t in rows], np.int64),
-        goal=goal,
-        visible=visible,
-        dist=dist,
-        start_flat=np.concatenate(starts).astype(np.int64),
-        start_ptr=np.array(start_ptr, np.int64),
-        near_flat=np.concatenate(near).astype(np.int64),
-        near_ptr=np.array(near_ptr, np.int64),
-        near_key=np.concatenate(near_key).astype(np.int64),
-        fixed_starts=fixed,
-        kitchen_rows=order.astype(np.int64),
-        kitchen_ptr=np.searchsorted(target_kitchen[order], np.arange(len(kitchens) + 1)).astype(np.int64),
-        tse_types=tse_types,
-        tasks=all_tasks,
-    )
-
-
-NEAR_KEY = 1 << 20  # larger than any BFS distance
-CURRICULUM_REACH = 25  # actions: about the farthest training start (they lie 10-25 from the destination)
-
-
-def arrays_state(owner, fields) -> dict:
-    """A checkpoint's copy of an object's NumPy arrays, as tensors (weights_only loads them)."""
-    return {name: torch.from_numpy(getattr(owner, name).copy()) for name in fields}
-
-
-def load_arrays(owner, fields, d: dict, what: str) -> None:
-    """Put back what `arrays_state` saved; a shape that differs is a ValueError naming the field."""
-    for name in fields:
-        value = d[name].numpy()
-        if value.shape != getattr(owner, name).shape:
-            raise ValueError(f"{what} {name} has shape {value.shape}, expected {getattr(owner, name).shape}")
-        setattr(owner, name, value.copy())
-
-
-class Navigators:
-    """Agents in a StateSpace, each in its own episode: env.step for all of them as array gathers.
-    A finished agent stays where it is until the caller starts its next episode (`draw`/`begin`)."""
-
-    FIELDS = (
-        "kitchen", "target", "state", "start", "steps", "path", "collisions", "success", "arrived", "cap",
-        "episode_return",
-    )  # fmt: skip
-
-    def __init__(
-        self,
-        space: StateSpace,
-        kitchen: np.ndarray,
-        stop_ends: bool = True,
-        assigned: np.ndarray | None = None,
-    ):
-        n = len(kitchen)
-        self.space, self.stop_ends, self.n = space, stop_ends, n
-        self.kitchen = np.asarray(kitchen, np.int64).copy()
-        # each agent's own target row (the paper's one target per thread); None: drawn per episode
-        self.assigned = None if assigned is None else np.asarray(assigned, np.int64).copy()
-        for name in ("target", "state", "start", "steps", "path", "collisions", "cap"):
-            setattr(self, name, np.zeros(n, np.int64))
-        self.success = np.zeros(n, bool)
-        self.arrived = np.zeros(n, bool)
-        self.episode_return = np.zeros(n, np.float64)
-
-    def begin(self, idx: np.ndarray, targets: np.ndarray, starts: np.ndarray, caps) -> None:
-        """Start episodes: agents idx get these targets (rows), start states and caps."""
-        self.target[idx], self.state[idx], self.start[idx], self.cap[idx] = targets, starts, starts, caps
-        for name in ("steps", "path", "collisions"):
-            getattr(self, name)[idx] = 0
-        self.success[idx] = False
-        self.arrived[idx] = self.space.goal[targets, starts]
-        self.episode_return[idx] = 0.0
-
-    def draw(self, idx: np.ndarray, rng: np.random.Generator, cap: int, reach: int | None = None) -> None:
-        """Training episodes as the env draws them: the agent's own target (or, without assigned
-        targets, one of its kitchen's), then a start; with `reach`, a distance in 0..reach drawn
-        uniformly, then a start at that distance from the destination (or the nearest distance below
-        it that has one), so near starts stay frequent."""
-        sp = self.space
-        if self.assigned is not None:
-            targets = self.assigned[idx]
-        else:
-            k = self.kitchen[idx]
-            lo = sp.kitchen_ptr[k]
-            targets = sp.kitchen_rows[lo + rng.integers(0, sp.kitchen_ptr[k + 1] - lo)]
-        if reach is None:
-            lo = sp.start_ptr[targets]
-            starts = sp.start_flat[lo + rng.integers(0, sp.start_ptr[targets + 1] - lo)]
-        else:
-            key = targets * NEAR_KEY + rng.integers(0, reach + 1, len(targets))
-            hi = np.maximum(np.searchsorted(sp.near_key, key, "right"), sp.near_ptr[targets] + 1)
-            lo = np.searchsorted(sp.near_key, sp.near_key[hi - 1], "left")
-            starts = sp.near_flat[lo + rng.integers(0, hi - lo)]
-        self.begin(idx, targets, starts, cap)
-
-    def step(self, actions: np.ndarray, idx: np.ndarray | None = None):
-        """One action per agent (of idx, or all): rewards, terminated, truncated, as env.step."""
-        sel = slice(None) if idx is None else idx
-        sp = self.space
-        t = transition(
-            sp.next_state,
-            sp.ok,
-            sp.goal,
-            self.state[sel],
-            actions,
-            self.target[sel],
-            self.arrived[sel],
-            self.steps[sel],
-            self.cap[sel],
-            self.stop_ends,
-        )
-        self.state[sel] = t.next_state
-        self.steps[sel] += 1
-        self.path[sel] += ~t.stop
-        self.collisions[sel] += t.collided
-        self.arrived[sel] |= t.on_goal
-        self.success[sel] = t.success
-        self.episode_return[sel] += t.reward
-        return t.reward, t.terminated, t.truncated
-
-    def state_dict(self) -> dict:
-        return arrays_state(self, self.FIELDS)
-
-    def load_state_dict(self, d: dict) -> None:
-        load_arrays(self, self.FIELDS, d, "agents'")
-
-
-# ------------------------------------------------------------------------------------------------
-# 3. The losses
 
 
 def n_step_returns(rewards: torch.Tensor, dones: torch.Tensor, bootstrap: torch.Tensor, gamma: float):
@@ -933,8 +689,8 @@ class Trainer:
         torch.manual_seed(run.seed)
         net = models.make_model(self.model_config)
         if net.encoder is not None:  # end to end: start from the committed encoder and its statistics
-            net.encoder.load_state_dict(models.load_encoder().state_dict())
-            stats = models.encoder_feature_stats()
+            net.encoder.load_state_dict(encoder.load_encoder().state_dict())
+            stats = encoder.encoder_feature_stats()
             net.feature_mean.copy_(stats["mean"])
             net.feature_std.copy_(stats["std"])
         self.model = Model(net, self.model_config, models.CoVisibility(), options.bf16)

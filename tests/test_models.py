@@ -9,21 +9,24 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from kgnavbench import models
-from kgnavbench.models import (
+from kgnavbench import encoder, models
+from kgnavbench.encoder import (
     ENCODER_FILE,
     FEATURE_DIM,
-    CoVisibility,
     Encoder,
-    ModelConfig,
-    ModelError,
+    EncoderError,
     ViewSet,
     evaluate_encoder,
     load_encoder,
+    state_features,
+)
+from kgnavbench.models import (
+    CoVisibility,
+    ModelConfig,
+    ModelError,
     make_model,
     masked_softmax,
     normalized_adjacency,
-    state_features,
 )
 from kgnavbench.tasks import state_graph
 
@@ -379,7 +382,7 @@ def test_committed_encoder_beats_a_random_one_on_a_validation_kitchen(floorplan5
         np.searchsorted((-30, 0, 30, 60), g.pitch[keep]),
         (g.opened[keep] >= 0).astype(np.float32),
     )
-    meta = models.read_encoder_file()["meta"]
+    meta = encoder.read_encoder_file()["meta"]
     assert "FloorPlan5" not in meta["kitchens"] and "FloorPlan5" in meta["val_kitchens"]
     trained = evaluate_encoder(load_encoder(), data)
     torch.manual_seed(0)
@@ -389,35 +392,35 @@ def test_committed_encoder_beats_a_random_one_on_a_validation_kitchen(floorplan5
 
 
 def test_encoder_file_errors_name_the_file(tmp_path):
-    with pytest.raises(ModelError, match="missing.pt.*missing"):
+    with pytest.raises(EncoderError, match="missing.pt.*missing"):
         load_encoder(tmp_path / "missing.pt")
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a torch file")
-    with pytest.raises(ModelError, match="bad.pt.*corrupt"):
+    with pytest.raises(EncoderError, match="bad.pt.*corrupt"):
         load_encoder(bad)
 
 
 def test_saved_encoder_round_trips_in_fp16(tmp_path):
     torch.manual_seed(1)
-    encoder = Encoder()
+    net = Encoder()
     path = tmp_path / "enc.pt"
-    models.save_encoder(encoder, path, {"seed": 1})
+    encoder.save_encoder(net, path, {"seed": 1})
     loaded = load_encoder(path)
-    for (k, a), b in zip(encoder.state_dict().items(), loaded.state_dict().values()):
+    for (k, a), b in zip(net.state_dict().items(), loaded.state_dict().values()):
         assert torch.equal(a.half().float(), b), k
-    assert models.read_encoder_file(path)["meta"] == {"seed": 1}
-    assert len(models.encoder_hash(path)) == 12
+    assert encoder.read_encoder_file(path)["meta"] == {"seed": 1}
+    assert len(encoder.encoder_hash(path)) == 12
 
 
 def test_pretraining_is_deterministic(floorplan5, floorplan1_tasks):
     args = dict(
         kitchens=["FloorPlan5"], val_kitchens=["FloorPlan5"], epochs=1, samples_per_epoch=64, batch_size=32
     )
-    with pytest.raises(ModelError, match="overlap"):
-        models.pretrain_encoder(out=None, log=lambda *_: None, **args)
+    with pytest.raises(EncoderError, match="overlap"):
+        encoder.pretrain_encoder(out=None, log=lambda *_: None, **args)
     args.update(val_kitchens=["FloorPlan1"], max_val_views=64)
-    a, meta_a = models.pretrain_encoder(out=None, seed=3, log=lambda *_: None, **args)
-    b, meta_b = models.pretrain_encoder(out=None, seed=3, log=lambda *_: None, **args)
+    a, meta_a = encoder.pretrain_encoder(out=None, seed=3, log=lambda *_: None, **args)
+    b, meta_b = encoder.pretrain_encoder(out=None, seed=3, log=lambda *_: None, **args)
     assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
     assert meta_a == meta_b and meta_a["images"] == 64 and meta_a["val"]["views"] == 64
 
@@ -426,8 +429,8 @@ def test_state_features_are_cached_reused_and_rebuilt(floorplan5, monkeypatch, c
     features = state_features("FloorPlan5")
     assert features.shape == (floorplan5.n_states, FEATURE_DIM) and features.dtype == np.float16
     assert np.isfinite(features).all() and (features >= 0).all()
-    path = models.features_path("FloorPlan5")
-    assert path.exists() and path.name.endswith(f".features-{models.encoder_hash()}.npy")
+    path = encoder.features_path("FloorPlan5")
+    assert path.exists() and path.name.endswith(f".features-{encoder.encoder_hash()}.npy")
     # the same numbers as encoding the views now
     some = np.array(floorplan5.views[:16])  # a writable copy of the memory-mapped views
     with torch.no_grad():
@@ -438,7 +441,7 @@ def test_state_features_are_cached_reused_and_rebuilt(floorplan5, monkeypatch, c
     def no_encoder():
         raise AssertionError("the encoder ran again")
 
-    monkeypatch.setattr(models, "_cached_encoder", no_encoder)
+    monkeypatch.setattr(encoder, "_cached_encoder", no_encoder)
     again = state_features("FloorPlan5")
     assert isinstance(again, np.memmap) and np.array_equal(again, features)
     monkeypatch.undo()
@@ -461,7 +464,7 @@ def test_state_features_are_cached_reused_and_rebuilt(floorplan5, monkeypatch, c
 
 def test_committed_encoder_file_exists():
     assert ENCODER_FILE.exists() and os.path.getsize(ENCODER_FILE) < 8_000_000
-    meta = models.read_encoder_file()["meta"]
+    meta = encoder.read_encoder_file()["meta"]
     for key in ("seed", "epochs", "kitchens", "val"):
         assert key in meta
     assert len(meta["kitchens"]) == 20 and meta["val"]["mAP"] > meta["val_random_init"]["mAP"]

@@ -1,4 +1,4 @@
-"""The trainer: the vectorised navigators against the env, the losses on hand-computed numbers, LSTM
+"""The trainer: the losses on hand-computed numbers, LSTM
 resets, TSE relabelling, IL, checkpoints and resumption, errors, and a tiny train + eval of every learned
 plugin."""
 
@@ -17,9 +17,8 @@ import numpy as np
 import pytest
 import torch
 
-from kgnavbench import models, train
+from kgnavbench import models, train, vecenv
 from kgnavbench.cli import main
-from kgnavbench.env import parallel_env
 from kgnavbench.tasks import STOP
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -51,85 +50,7 @@ def tiny_run(tmp_path: Path, frames: int = 400, seed: int = 0) -> train.Run:
 
 @pytest.fixture(scope="module")
 def space(floorplan1_tasks):
-    return train.build_space(["FloorPlan1"], "all", "destination")
-
-
-# ----------------------------------------------------------------------------------------------------
-# the navigators step exactly as the env
-
-
-@pytest.mark.parametrize("rule", ["destination", "visible"])
-def test_navigators_give_the_envs_episodes(floorplan1_tasks, rule):
-    """The same fixed episodes and the same random actions through the PettingZoo env and through
-    Navigators (array gathers): identical states, rewards, terminations and episode statistics."""
-    tasks = floorplan1_tasks
-    space = train.build_space(["FloorPlan1"], "all", rule)
-    rows = {t: r for r, t in enumerate(space.target_ids)}
-    episodes = [
-        {"target": t.object_id, "start": s, "max_steps": 60} for t in tasks.targets[:6] for s in t.starts[:3]
-    ]
-    env = parallel_env(kitchen="FloorPlan1", n_agents=len(episodes), targets="all", success_rule=rule)
-    _, infos = env.reset(options={"episodes": episodes})
-    agents = list(env.agents)
-    nav = train.Navigators(space, np.zeros(len(episodes), np.int64))
-    nav.begin(
-        np.arange(len(episodes)),
-        np.array([rows[e["target"]] for e in episodes]),
-        np.array([e["start"] for e in episodes]),
-        60,
-    )
-    rng = np.random.default_rng(0)
-    live = np.ones(len(episodes), bool)
-    steps = 0
-    while env.agents:
-        # Stop rarely, so that episodes run long and some end at the cap
-        actions = np.where(rng.random(len(episodes)) < 0.03, STOP, rng.integers(0, STOP, len(episodes)))
-        idx = np.flatnonzero(live)
-        _, rewards, terminations, truncations, infos = env.step({agents[i]: int(actions[i]) for i in idx})
-        r, term, trunc = nav.step(actions[idx], idx)
-        for j, i in enumerate(idx):
-            a, info = agents[i], infos[agents[i]]
-            assert rewards[a] == pytest.approx(r[j])
-            assert (terminations[a], truncations[a]) == (bool(term[j]), bool(trunc[j]))
-            assert info["state"] == nav.state[i] - space.offsets[0]
-            assert info["success"] == nav.success[i]
-            assert info["path_length"] == nav.path[i]
-            assert info["collisions"] == nav.collisions[i]
-            assert info["episode_length"] == nav.steps[i]
-        live[idx[term | trunc]] = False
-        steps += len(idx)
-    assert not live.any() and steps > 200
-    assert nav.collisions.sum() > 0
-
-
-def test_training_starts_are_the_envs(space, floorplan1_tasks):
-    """Navigators.draw starts where the env would: pitch 0, target out of view, >= 10 actions away."""
-    nav = train.Navigators(space, np.zeros(500, np.int64))
-    nav.draw(np.arange(500), np.random.default_rng(1), 5000)
-    graph = floorplan1_tasks.graph
-    assert (graph.pitch[nav.state] == 0).all()
-    assert not space.visible[nav.target, nav.state].any()
-    assert (space.dist[nav.target, nav.state] >= 10).all()
-    assert len(set(nav.target.tolist())) > 5
-
-
-def test_curriculum_starts_near_the_destination_then_ever_farther(space, floorplan1_tasks):
-    """reach 0: every episode starts as near its destination as a start can (on it, where it is
-    closed at pitch 0); reach r: within r actions, at pitch 0 with no receptacle open, each distance
-    0..r about equally frequent."""
-    graph = floorplan1_tasks.graph
-    nav = train.Navigators(space, np.zeros(3000, np.int64))
-    nav.draw(np.arange(3000), np.random.default_rng(2), 200, reach=0)
-    startable = space.closed & (graph.pitch == 0)
-    nearest = np.where(startable, space.dist, 10**6).min(1)
-    assert (space.dist[nav.target, nav.state] == nearest[nav.target]).all()
-    assert (nav.state == space.destination[nav.target]).any()
-    nav.draw(np.arange(3000), np.random.default_rng(3), 200, reach=6)
-    dist = space.dist[nav.target, nav.state]
-    assert (graph.pitch[nav.state] == 0).all() and space.closed[nav.state].all()
-    counts = np.bincount(dist[nearest[nav.target] == 0], minlength=7)
-    assert dist.max() == 6 and counts.min() > counts.sum() / 7 * 0.7, counts
-    assert (nav.cap == 200).all() and nav.arrived[dist == 0].all() and not nav.arrived[dist > 0].any()
+    return vecenv.build_space(["FloorPlan1"], "all", "destination")
 
 
 def test_curriculum_reach_grows_with_frames_then_ends(tmp_path, floorplan1_tasks):
@@ -138,7 +59,7 @@ def test_curriculum_reach_grows_with_frames_then_ends(tmp_path, floorplan1_tasks
     )
     assert trainer.reach() == 0 and (trainer.space.dist[trainer.nav.target, trainer.nav.state] < 10).all()
     trainer.frames = 500
-    assert trainer.reach() == train.CURRICULUM_REACH // 2
+    assert trainer.reach() == vecenv.CURRICULUM_REACH // 2
     trainer.frames = 1000
     assert trainer.reach() is None  # over: the training starts as usual
     assert train.Trainer(tiny_run(tmp_path), tiny_options(), models.ModelConfig(), True).reach() is None
@@ -267,8 +188,8 @@ def test_subtargets_exclude_the_unseen_targets_unless_asked(floorplan1_tasks):
     types = {t: i for i, t in enumerate(train.object_types())}
     unseen = {types[t.type] for t in floorplan1_tasks.targets if not t.seen}
     seen = {types[t.type] for t in floorplan1_tasks.targets if t.seen}
-    default = train.build_space(["FloorPlan1"], "seen", "destination")
-    allowed = train.build_space(["FloorPlan1"], "seen", "destination", unseen_subtargets=True)
+    default = vecenv.build_space(["FloorPlan1"], "seen", "destination")
+    allowed = vecenv.build_space(["FloorPlan1"], "seen", "destination", unseen_subtargets=True)
     novel = set(np.flatnonzero(default.tse_types[0]).tolist())
     assert novel and not novel & unseen and not novel & seen
     assert set(np.flatnonzero(allowed.tse_types[0]).tolist()) & (unseen - seen)

@@ -1,0 +1,572 @@
+"""Stage 7 — vecenv: navigators in many kitchens as one batched simulator, and its Gymnasium faces.
+
+    import gymnasium as gym
+    import kgnavbench  # registers the ids below
+
+    envs = gym.make_vec("kgnavbench/train-v0", num_envs=140)  # NavigationVectorEnv: all 20 training kitchens
+    observations, infos = envs.reset(seed=0)
+    observations, rewards, terminations, truncations, infos = envs.step(envs.action_space.sample())
+
+    env = gym.make("kgnavbench/FloorPlan1-v0")  # NavigationGymEnv: one navigator, a gymnasium.Env
+
+Ids: `kgnavbench/FloorPlan1-v0` .. `kgnavbench/FloorPlan30-v0` (one kitchen) and `kgnavbench/train-v0`,
+`val-v0`, `test-v0` (a split's kitchens; the navigator's kitchen is drawn per episode, or, vectorised,
+sub-env i lives in the split's kitchen i mod K). `gym.make_vec` returns the batched NavigationVectorEnv
+itself (its `vector_entry_point`), not copies of the single env.
+
+The semantics are the PettingZoo env's (kgnavbench/env.py), through the same `env.transition`:
+Actions: Discrete(10), the paper's order (0 MoveAhead, 1 MoveBack, 2 MoveRight, 3 MoveLeft, 4 RotateRight,
+    5 RotateLeft, 6 LookUp, 7 LookDown, 8 OpenObject, 9 Stop); MultiDiscrete for the vector env.
+Observations (a dict of arrays; the vector env's have a leading num_envs axis; fresh, writable arrays
+    on every call):
+    "features"        float32 (512,)  the frozen encoder's features of the current view, standardized
+                                      with its statistics of the training kitchens (`encoder.standardize`),
+                                      what the learned agents see
+    "target_features" float32 (512,)  the same for the target image (the view at the destination)
+    "view_objects"    uint8 (125,)    1 for each object type visible in the current view
+    "target_objects"  uint8 (125,)    the same for the target image
+    "view", "target"  uint8 (84, 84, 3) the views themselves, with views=True (off by default: 20
+                                      kitchens' views take about 1 GB)
+Rewards: -0.01 every step; +0.01 the first time a goal state is reached; +10 on success.
+Termination: Stop ends the episode (stop_ends=False: a Stop that does not succeed is a no-op); success
+    is Stop at the target's destination (success_rule="destination", the paper's) or in any state that
+    shows it ("visible"). Truncation at max_steps (5000 by default, as in training).
+Episodes: a training target of the kitchen ("seen"; the validation and test kitchens have none, so
+    there every target: "all") and a start at pitch 0 at least 10 actions from its destination, drawn
+    from the generator seeded by reset(seed=...).
+Autoreset (vector env): same step (gymnasium's AutoresetMode.SAME_STEP). A finished sub-env starts its
+    next episode inside the step that ended it: the returned observation is the new episode's first;
+    infos["final_obs"][i] (with mask infos["_final_obs"]) is the last one of the old, and
+    infos["final_info"] holds its success, episode_length, path_length, shortest_path, collisions and
+    episode_return, each with its `_key` mask.
+Infos: every step "kitchen" and "target" (object id) per sub-env. Nothing privileged: no state index,
+    no expert action (the PettingZoo env's infos keep those for the shipped plugins and the oracle).
+
+Inside: `StateSpace` concatenates the kitchens' state graphs (global state = kitchen offset + local
+state) with per-target goal and distance tables; `Navigators` steps every agent at once as array
+gathers. The trainer (kgnavbench/train.py) drives `Navigators` directly, because its TSE reads each
+agent's state between the step and the next episode's draw.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from gymnasium import Env, spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from .encoder import FEATURE_DIM, N_TYPES, encoder_feature_stats, standardize, state_features
+from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, transition
+from .kitchens import KITCHEN_NAMES, check_name, object_types
+from .tasks import VIEW_SIZE, KitchenTasks, load_task_file, load_tasks
+from .world import ACTIONS
+
+SPLIT_NAMES = ("train", "val", "test")
+TARGET_SETS = ("seen", "all")
+
+
+class VecEnvError(ValueError):
+    """Bad input: an unknown kitchen, split, target set or rule; actions of the wrong shape."""
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. The state space: the kitchens' state graphs as one, and navigators stepping in it
+
+
+@dataclass
+class StateSpace:
+    """Several kitchens' state graphs as one: global state = kitchen offset + local state."""
+
+    kitchens: list[str]
+    offsets: np.ndarray  # (K + 1,)
+    next_state: np.ndarray  # (S, 10) global next state per action
+    ok: np.ndarray  # (S, 10) the action succeeded
+    objects: np.ndarray  # (S, 125) uint8, visible object types
+    features: np.ndarray  # (S, F) float16, the frozen encoder's features of each state's view
+    kitchen_of: np.ndarray  # (S,)
+    closed: np.ndarray  # (S,) no receptacle open
+    # targets: one row per target
+    target_ids: list[str]
+    target_kitchen: np.ndarray  # (T,)
+    target_type: np.ndarray  # (T,) object type index
+    destination: np.ndarray  # (T,) global state
+    goal: np.ndarray  # (T, S) success states under the rule (for the +0.01 and +10)
+    visible: np.ndarray  # (T, S) the target is in view
+    dist: np.ndarray  # (T, S) int32 BFS actions to a goal state (-1: none)
+    start_flat: np.ndarray  # training starts of target t: start_flat[start_ptr[t]:start_ptr[t + 1]]
+    start_ptr: np.ndarray
+    # a curriculum's starts of target t, nearest first: near_flat[near_ptr[t]:near_ptr[t + 1]], and
+    # near_key = t * NEAR_KEY + distance to the destination, sorted, for one searchsorted per draw
+    near_flat: np.ndarray
+    near_ptr: np.ndarray
+    near_key: np.ndarray
+    fixed_starts: list[tuple[int, ...]]  # the task file's episodes (global states)
+    kitchen_rows: np.ndarray  # target rows of kitchen k: kitchen_rows[kitchen_ptr[k]:kitchen_ptr[k + 1]]
+    kitchen_ptr: np.ndarray
+    tse_types: np.ndarray  # (K, 125) novel objects: pickupable types that are no target (build_space)
+    tasks: list[KitchenTasks] = field(repr=False)
+    views: np.ndarray | None = field(default=None, repr=False)  # (S, 84, 84, 3) uint8, pixel models
+
+    @property
+    def n_states(self) -> int:
+        return len(self.next_state)
+
+    def __post_init__(self) -> None:
+        # standardized with the encoder's statistics of the training kitchens (standardize)
+        self.features_t = standardize(self.features, encoder_feature_stats())
+        self.objects_t = torch.from_numpy(self.objects.astype(np.float32))
+
+
+def build_space(
+    kitchens,
+    targets: str = "seen",
+    success_rule: str = "destination",
+    pixels: bool = False,
+    unseen_subtargets: bool = False,
+) -> StateSpace:
+    """Load the kitchens' state graphs, features and targets ('seen': training targets; 'all'), and
+    with `pixels` their views. TSE's novel objects (`tse_types`) are the pickupable types that are no
+    training target of the kitchen and, unless `unseen_subtargets`, no unseen target of it either."""
+    types = {t: i for i, t in enumerate(object_types())}
+    parts, rows, offsets, all_tasks = [], [], [0], []
+    tse_types = np.zeros((len(kitchens), len(types)), bool)
+    for k, name in enumerate(kitchens):
+        kt = load_tasks(name)
+        g, off = kt.graph, offsets[-1]
+        feats = np.asarray(state_features(name))
+        if feats.shape[0] != g.n_states:
+            raise VecEnvError(f"features of {name} have {feats.shape[0]} rows for {g.n_states} states")
+        chosen = [t for t in kt.targets if targets == "all" or t.seen]
+        if not chosen:
+            raise VecEnvError(f"{name} has no {targets} targets")
+        training_types = {t.type for t in kt.targets if t.seen}
+        held_out = set() if unseen_subtargets else {t.type for t in kt.targets if not t.seen}
+        for o in g.world.objects:
+            if o.pickupable and o.type not in training_types and o.type not in held_out:
+                tse_types[k, types[o.type]] = True
+        parts.append((g, feats, kt))
+        rows += [(k, off, kt, t) for t in chosen]
+        offsets.append(off + g.n_states)
+        all_tasks.append(kt)
+    n = offsets[-1]
+    n_targets = len(rows)
+    goal = np.zeros((n_targets, n), bool)
+    visible = np.zeros((n_targets, n), bool)
+    dist = np.full((n_targets, n), -1, np.int32)
+    starts, start_ptr, fixed = [], [0], []
+    near, near_ptr, near_key = [], [0], []
+    for r, (_, off, kt, t) in enumerate(rows):
+        g = kt.graph
+        m = g.n_states
+        visible[r, off + np.array(t.goal_states)] = True
+        goal[r, off + np.array(t.goals(success_rule))] = True
+        dist[r, off : off + m] = kt.distances(t, success_rule)
+        far = kt.training_starts(t)  # the env draws its training starts from the same states
+        starts.append(far + off)
+        start_ptr.append(start_ptr[-1] + len(far))
+        fixed.append(tuple(int(s) + off for s in t.starts))
+        ladder, ladder_dist = kt.curriculum_starts(t)
+        near.append(ladder + off)
+        near_ptr.append(near_ptr[-1] + len(ladder))
+        near_key.append(r * NEAR_KEY + ladder_dist)
+    target_kitchen = np.array([r[0] for r in rows], np.int64)
+    order = np.argsort(target_kitchen, kind="stable")
+    return StateSpace(
+        kitchens=list(kitchens),
+        offsets=np.array(offsets, np.int64),
+        next_state=np.concatenate([g.next_state + off for (g, _, _), off in zip(parts, offsets)]),
+        ok=np.concatenate([g.ok for g, _, _ in parts]),
+        objects=np.concatenate([g.object_vectors for g, _, _ in parts]),
+        features=np.concatenate([f for _, f, _ in parts]),
+        views=np.concatenate([g.views for g, _, _ in parts]) if pixels else None,
+        kitchen_of=np.repeat(np.arange(len(kitchens)), np.diff(offsets)),
+        closed=np.concatenate([g.opened < 0 for g, _, _ in parts]),
+        target_ids=[t.object_id for _, _, _, t in rows],
+        target_kitchen=target_kitchen,
+        target_type=np.array([types[t.type] for _, _, _, t in rows], np.int64),
+        destination=np.array([off + t.destination for _, off, _, t in rows], np.int64),
+        goal=goal,
+        visible=visible,
+        dist=dist,
+        start_flat=np.concatenate(starts).astype(np.int64),
+        start_ptr=np.array(start_ptr, np.int64),
+        near_flat=np.concatenate(near).astype(np.int64),
+        near_ptr=np.array(near_ptr, np.int64),
+        near_key=np.concatenate(near_key).astype(np.int64),
+        fixed_starts=fixed,
+        kitchen_rows=order.astype(np.int64),
+        kitchen_ptr=np.searchsorted(target_kitchen[order], np.arange(len(kitchens) + 1)).astype(np.int64),
+        tse_types=tse_types,
+        tasks=all_tasks,
+    )
+
+
+NEAR_KEY = 1 << 20  # larger than any BFS distance
+CURRICULUM_REACH = 25  # actions: about the farthest training start (they lie 10-25 from the destination)
+
+
+def arrays_state(owner, fields) -> dict:
+    """A checkpoint's copy of an object's NumPy arrays, as tensors (weights_only loads them)."""
+    return {name: torch.from_numpy(getattr(owner, name).copy()) for name in fields}
+
+
+def load_arrays(owner, fields, d: dict, what: str) -> None:
+    """Put back what `arrays_state` saved; a shape that differs is a ValueError naming the field."""
+    for name in fields:
+        value = d[name].numpy()
+        if value.shape != getattr(owner, name).shape:
+            raise ValueError(f"{what} {name} has shape {value.shape}, expected {getattr(owner, name).shape}")
+        setattr(owner, name, value.copy())
+
+
+class Navigators:
+    """Agents in a StateSpace, each in its own episode: env.step for all of them as array gathers.
+    A finished agent stays where it is until the caller starts its next episode (`draw`/`begin`)."""
+
+    FIELDS = (
+        "kitchen", "target", "state", "start", "steps", "path", "collisions", "success", "arrived", "cap",
+        "episode_return",
+    )  # fmt: skip
+
+    def __init__(
+        self,
+        space: StateSpace,
+        kitchen: np.ndarray,
+        stop_ends: bool = True,
+        assigned: np.ndarray | None = None,
+    ):
+        n = len(kitchen)
+        self.space, self.stop_ends, self.n = space, stop_ends, n
+        self.kitchen = np.asarray(kitchen, np.int64).copy()
+        # each agent's own target row (the paper's one target per thread); None: drawn per episode
+        self.assigned = None if assigned is None else np.asarray(assigned, np.int64).copy()
+        for name in ("target", "state", "start", "steps", "path", "collisions", "cap"):
+            setattr(self, name, np.zeros(n, np.int64))
+        self.success = np.zeros(n, bool)
+        self.arrived = np.zeros(n, bool)
+        self.episode_return = np.zeros(n, np.float64)
+
+    def begin(self, idx: np.ndarray, targets: np.ndarray, starts: np.ndarray, caps) -> None:
+        """Start episodes: agents idx get these targets (rows), start states and caps."""
+        self.target[idx], self.state[idx], self.start[idx], self.cap[idx] = targets, starts, starts, caps
+        for name in ("steps", "path", "collisions"):
+            getattr(self, name)[idx] = 0
+        self.success[idx] = False
+        self.arrived[idx] = self.space.goal[targets, starts]
+        self.episode_return[idx] = 0.0
+
+    def draw(self, idx: np.ndarray, rng: np.random.Generator, cap: int, reach: int | None = None) -> None:
+        """Training episodes as the env draws them: the agent's own target (or, without assigned
+        targets, one of its kitchen's), then a start; with `reach`, a distance in 0..reach drawn
+        uniformly, then a start at that distance from the destination (or the nearest distance below
+        it that has one), so near starts stay frequent."""
+        sp = self.space
+        if self.assigned is not None:
+            targets = self.assigned[idx]
+        else:
+            k = self.kitchen[idx]
+            lo = sp.kitchen_ptr[k]
+            targets = sp.kitchen_rows[lo + rng.integers(0, sp.kitchen_ptr[k + 1] - lo)]
+        if reach is None:
+            lo = sp.start_ptr[targets]
+            starts = sp.start_flat[lo + rng.integers(0, sp.start_ptr[targets + 1] - lo)]
+        else:
+            key = targets * NEAR_KEY + rng.integers(0, reach + 1, len(targets))
+            hi = np.maximum(np.searchsorted(sp.near_key, key, "right"), sp.near_ptr[targets] + 1)
+            lo = np.searchsorted(sp.near_key, sp.near_key[hi - 1], "left")
+            starts = sp.near_flat[lo + rng.integers(0, hi - lo)]
+        self.begin(idx, targets, starts, cap)
+
+    def step(self, actions: np.ndarray, idx: np.ndarray | None = None):
+        """One action per agent (of idx, or all): rewards, terminated, truncated, as env.step."""
+        sel = slice(None) if idx is None else idx
+        sp = self.space
+        t = transition(
+            sp.next_state,
+            sp.ok,
+            sp.goal,
+            self.state[sel],
+            actions,
+            self.target[sel],
+            self.arrived[sel],
+            self.steps[sel],
+            self.cap[sel],
+            self.stop_ends,
+        )
+        self.state[sel] = t.next_state
+        self.steps[sel] += 1
+        self.path[sel] += ~t.stop
+        self.collisions[sel] += t.collided
+        self.arrived[sel] |= t.on_goal
+        self.success[sel] = t.success
+        self.episode_return[sel] += t.reward
+        return t.reward, t.terminated, t.truncated
+
+    def state_dict(self) -> dict:
+        return arrays_state(self, self.FIELDS)
+
+    def load_state_dict(self, d: dict) -> None:
+        load_arrays(self, self.FIELDS, d, "agents'")
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. The Gymnasium faces
+
+
+def kitchens_of(kitchens) -> list[str]:
+    """'train' | 'val' | 'test' -> that split's kitchens; a kitchen name -> [it]; a list -> itself."""
+    if isinstance(kitchens, str):
+        if kitchens in SPLIT_NAMES:
+            return sorted(load_task_file()["splits"][kitchens], key=KITCHEN_NAMES.index)
+        kitchens = [kitchens]
+    names = list(kitchens)
+    if not names:
+        raise VecEnvError("no kitchens given")
+    for name in names:
+        try:
+            check_name(name)
+        except ValueError as e:
+            raise VecEnvError(f"{e} (or a split: {', '.join(SPLIT_NAMES)})") from e
+    return names
+
+
+def default_targets(kitchens: list[str]) -> str:
+    """'seen' (the training targets) where every kitchen is a training kitchen, else 'all'."""
+    train = set(load_task_file()["splits"]["train"])
+    return "seen" if set(kitchens) <= train else "all"
+
+
+def observation_space(views: bool = False, view_size: int = VIEW_SIZE) -> spaces.Dict:
+    """One navigator's observation space (the module docstring). The features' bounds are those of
+    the cached float16 ReLU features, 0 .. 65504, standardized."""
+    stats = encoder_feature_stats()
+    low = standardize(np.zeros(FEATURE_DIM, np.float32), stats).numpy()
+    high = standardize(np.full(FEATURE_DIM, np.finfo(np.float16).max, np.float32), stats).numpy()
+    parts = {
+        "features": spaces.Box(low, high, (FEATURE_DIM,), np.float32),
+        "target_features": spaces.Box(low, high, (FEATURE_DIM,), np.float32),
+        "view_objects": spaces.Box(0, 1, (N_TYPES,), np.uint8),
+        "target_objects": spaces.Box(0, 1, (N_TYPES,), np.uint8),
+    }
+    if views:
+        parts["view"] = spaces.Box(0, 255, (view_size, view_size, 3), np.uint8)
+        parts["target"] = spaces.Box(0, 255, (view_size, view_size, 3), np.uint8)
+    return spaces.Dict(parts)
+
+
+class _Navigation:
+    """What both faces share: the space, the navigators, the observation gathers and the infos."""
+
+    def _setup(self, n, kitchens, targets, success_rule, stop_ends, max_steps, views) -> None:
+        names = kitchens_of(kitchens)
+        targets = default_targets(names) if targets is None else targets
+        if targets not in TARGET_SETS:
+            raise VecEnvError(f"unknown target set {targets!r}; choose one of {', '.join(TARGET_SETS)}")
+        if success_rule not in SUCCESS_RULES:
+            raise VecEnvError(f"unknown success_rule {success_rule!r}; choose one of {SUCCESS_RULES}")
+        if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
+            raise VecEnvError(f"max_steps must be a positive integer, not {max_steps!r}")
+        self.space = build_space(names, targets, success_rule, pixels=views)
+        self.views = views
+        self.max_steps = max_steps
+        self.navigators = Navigators(self.space, np.arange(n) % len(names), stop_ends=bool(stop_ends))
+        # the learned agents' inputs as plain float32 rows, gathered per step into fresh arrays
+        self._features = self.space.features_t.numpy()
+        self._kitchen_names = np.array(self.space.kitchens, dtype=object)
+        self._target_names = np.array(self.space.target_ids, dtype=object)
+
+    def _gather(self, idx=slice(None)) -> dict:
+        sp, nav = self.space, self.navigators
+        state, goal = nav.state[idx], sp.destination[nav.target[idx]]
+        out = {
+            "features": self._features[state],
+            "target_features": self._features[goal],
+            "view_objects": sp.objects[state],
+            "target_objects": sp.objects[goal],
+        }
+        if self.views:
+            out["view"], out["target"] = sp.views[state], sp.views[goal]
+        return out
+
+    def _episode_info(self, idx) -> dict:
+        nav = self.navigators
+        return {
+            "success": nav.success[idx].copy(),
+            "episode_length": nav.steps[idx].copy(),
+            "path_length": nav.path[idx].copy(),
+            "shortest_path": self.space.dist[nav.target[idx], nav.start[idx]].astype(np.int64),
+            "collisions": nav.collisions[idx].copy(),
+            "episode_return": nav.episode_return[idx].copy(),
+        }
+
+
+class NavigationVectorEnv(_Navigation, VectorEnv):
+    """num_envs navigators over `kitchens` (a split, a kitchen or a list), sub-env i in kitchen i mod K,
+    stepped at once; gymnasium's VectorEnv with same-step autoreset (module docstring)."""
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+
+    def __init__(
+        self,
+        num_envs: int = 140,
+        kitchens="train",
+        targets: str | None = None,
+        success_rule: str = "destination",
+        stop_ends: bool = True,
+        max_steps: int = TRAINING_MAX_STEPS,
+        views: bool = False,
+    ):
+        if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
+            raise VecEnvError(f"num_envs must be a positive integer, not {num_envs!r}")
+        self._setup(num_envs, kitchens, targets, success_rule, stop_ends, max_steps, views)
+        self.num_envs = num_envs
+        self.single_observation_space = observation_space(views)
+        self.single_action_space = spaces.Discrete(len(ACTIONS))
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self._rng = np.random.default_rng()
+        self._all = np.arange(num_envs)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+            self.single_action_space.seed(seed)
+            self.action_space.seed(seed)
+        self.navigators.draw(self._all, self._rng, self.max_steps)
+        return self._gather(), self._infos()
+
+    def step(self, actions):
+        actions = np.asarray(actions)
+        if actions.shape != (self.num_envs,) or not np.issubdtype(actions.dtype, np.integer):
+            raise VecEnvError(
+                f"actions must be {self.num_envs} integers, got {actions.dtype} {actions.shape}"
+            )
+        if actions.min() < 0 or actions.max() >= len(ACTIONS):
+            raise VecEnvError(f"actions must lie in 0..{len(ACTIONS) - 1}")
+        rewards, terminated, truncated = self.navigators.step(actions.astype(np.int64))
+        done = np.flatnonzero(terminated | truncated)
+        infos = self._infos()
+        if len(done):
+            last = self._gather(done)
+            final_obs = np.full(self.num_envs, None, dtype=object)
+            for j, i in enumerate(done.tolist()):
+                final_obs[i] = {key: value[j] for key, value in last.items()}
+            mask = np.zeros(self.num_envs, bool)
+            mask[done] = True
+            final_info = {}
+            for key, value in self._episode_info(done).items():
+                column = np.zeros(self.num_envs, value.dtype)
+                column[done] = value
+                final_info[key], final_info[f"_{key}"] = column, mask.copy()
+            infos.update(final_obs=final_obs, _final_obs=mask.copy(), final_info=final_info, _final_info=mask)
+            self.navigators.draw(done, self._rng, self.max_steps)
+        return (
+            self._gather(),
+            rewards.astype(np.float64),
+            terminated.copy(),
+            truncated.copy(),
+            infos,
+        )
+
+    def _infos(self) -> dict:
+        nav = self.navigators
+        every = np.ones(self.num_envs, bool)
+        return {
+            "kitchen": self._kitchen_names[nav.kitchen],
+            "_kitchen": every,
+            "target": self._target_names[nav.target],
+            "_target": every.copy(),
+        }
+
+
+class NavigationGymEnv(_Navigation, Env):
+    """One navigator in `kitchens` (a kitchen, a split or a list; the kitchen drawn per episode), as a
+    gymnasium.Env (module docstring). reset(options={"target": id, "start": state}) starts a given
+    episode instead (state: the kitchen's local state index, as in the task file's fixed episodes)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        kitchens="FloorPlan1",
+        targets: str | None = None,
+        success_rule: str = "destination",
+        stop_ends: bool = True,
+        max_steps: int = TRAINING_MAX_STEPS,
+        views: bool = False,
+    ):
+        self._setup(1, kitchens, targets, success_rule, stop_ends, max_steps, views)
+        self.observation_space = observation_space(views)
+        self.action_space = spaces.Discrete(len(ACTIONS))
+        self._rows = {
+            (self.space.kitchens[k], t): r
+            for r, (k, t) in enumerate(zip(self.space.target_kitchen.tolist(), self.space.target_ids))
+        }
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        nav, sp = self.navigators, self.space
+        if options and "target" in options:
+            self._begin(options)
+        else:
+            nav.kitchen[0] = self.np_random.integers(len(sp.kitchens))
+            nav.draw(np.zeros(1, np.int64), self.np_random, self.max_steps)
+        return self._single(self._gather()), self._info()
+
+    def _begin(self, options: dict) -> None:
+        sp = self.space
+        matches = [r for (k, t), r in self._rows.items() if t == options["target"]]
+        if not matches:
+            raise VecEnvError(f"{options['target']!r} is not a target of {', '.join(sp.kitchens)}")
+        row = matches[0]
+        k = int(sp.target_kitchen[row])
+        local = options.get("start")
+        n_local = int(sp.offsets[k + 1] - sp.offsets[k])
+        if not isinstance(local, (int, np.integer)) or not 0 <= local < n_local:
+            raise VecEnvError(
+                f"start must be a state index of {sp.kitchens[k]} (0..{n_local - 1}), not {local!r}"
+            )
+        start = int(sp.offsets[k]) + int(local)
+        if sp.dist[row, start] < 0:
+            raise VecEnvError(f"the target {options['target']!r} cannot be reached from state {local}")
+        self.navigators.kitchen[0] = k
+        cap = int(options.get("max_steps", self.max_steps))
+        self.navigators.begin(np.zeros(1, np.int64), np.array([row]), np.array([start]), cap)
+
+    def step(self, action):
+        if not self.action_space.contains(action):
+            raise VecEnvError(f"action must be an integer in 0..{len(ACTIONS) - 1}, not {action!r}")
+        rewards, terminated, truncated = self.navigators.step(np.array([int(action)], np.int64))
+        info = self._info()
+        if terminated[0] or truncated[0]:
+            info.update({k: v[0].item() for k, v in self._episode_info(slice(0, 1)).items()})
+        return self._single(self._gather()), float(rewards[0]), bool(terminated[0]), bool(truncated[0]), info
+
+    @staticmethod
+    def _single(batch: dict) -> dict:
+        return {key: value[0] for key, value in batch.items()}
+
+    def _info(self) -> dict:
+        nav = self.navigators
+        return {
+            "kitchen": self.space.kitchens[nav.kitchen[0]],
+            "target": self.space.target_ids[nav.target[0]],
+        }
+
+
+def register_ids() -> None:
+    """The Gymnasium ids of the module docstring (`import kgnavbench` calls this)."""
+    from gymnasium.envs.registration import register, registry
+
+    for name in (*KITCHEN_NAMES, *SPLIT_NAMES):
+        env_id = f"kgnavbench/{name}-v0"
+        if env_id not in registry:
+            register(
+                id=env_id,
+                entry_point="kgnavbench.vecenv:NavigationGymEnv",
+                vector_entry_point="kgnavbench.vecenv:NavigationVectorEnv",
+                kwargs={"kitchens": name},
+            )
