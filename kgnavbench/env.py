@@ -21,6 +21,10 @@ Observations (per agent, a dict):
     "target_objects" uint8 (125,)     the same for the target image
     (V = 84 by default; types in `kgnavbench.kitchens.object_types()` order.) Views are looked up in
     the state graph's cache, so a step renders nothing. Arrays are read-only views of that cache.
+    features=True adds "features" and "target_features", float32 (512,): the frozen encoder's
+    features of the two views, standardized as the learned agents see them (kgnavbench/encoder.py).
+    observation="box": instead of the dict, one fresh float32 (1274,) vector per agent: the view's
+    features and visible types, then the target's (for libraries that want a Box, e.g. SuperSuit).
 Rewards: -0.01 every step; +0.01 the first time the agent reaches a goal state; +10 on success.
 Termination: Stop ends the episode (stop_ends=False: a Stop that does not succeed is a no-op).
     Success (the paper's, default success_rule="destination") = Stop at the target's destination, the
@@ -31,6 +35,10 @@ Infos (per agent, every step): success, path_length (actions, Stop not counted),
     shortest_path (from the start, under the success rule), collisions, target, target_kind,
     target_seen, last_view_shows_target, state, and expert_action (the BFS-optimal next action:
     privileged, for imitation learning and the oracle).
+
+autoreset=True (outside PettingZoo's contract, for SuperSuit's vector envs): a navigator whose episode
+    ends stays in `env.agents` and starts its next training episode in the same step; that step's
+    observation is the new episode's first, its terminations/truncations and infos the ended one's.
 
 Episodes: in training, reset draws each agent a target (`targets`: "seen", "unseen", "all" or a list
 of object ids) and a start at pitch 0 at least 10 actions from the target's destination, from the
@@ -49,6 +57,7 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
+from .encoder import FEATURE_DIM, encoder_feature_stats, standardize, state_features
 from .kitchens import object_types
 from .render import top_down_map
 from .tasks import (
@@ -70,6 +79,7 @@ ARRIVAL_REWARD = 0.01
 SUCCESS_REWARD = 10.0
 TRAINING_MAX_STEPS = 5000
 TARGET_SETS = ("seen", "unseen", "all")
+OBSERVATION_FORMATS = ("dict", "box")
 IS_MOVE = np.isin(np.arange(len(ACTIONS)), MOVES)  # per action: a move (a failed one is a collision)
 
 
@@ -158,7 +168,12 @@ class NavigationEnv(ParallelEnv):
         view_size: int = VIEW_SIZE,
         render_mode: str | None = None,
         tasks: KitchenTasks | None = None,
+        features: bool = False,
+        observation: str = "dict",
+        autoreset: bool = False,
     ):
+        if observation not in OBSERVATION_FORMATS:
+            raise EnvError(f"unknown observation {observation!r}; choose one of {OBSERVATION_FORMATS}")
         if success_rule not in SUCCESS_RULES:
             raise EnvError(f"unknown success_rule {success_rule!r}; choose one of {SUCCESS_RULES}")
         if render_mode not in (None, *self.metadata["render_modes"]):
@@ -186,14 +201,32 @@ class NavigationEnv(ParallelEnv):
         self._target_meta = [(t.object_id, t.kind, t.seen) for t in self.tasks.targets]
         v = self.graph.views.shape[1]
         n_types = len(object_types())
-        self._observation_space = spaces.Dict(
-            {
-                "view": spaces.Box(0, 255, (v, v, 3), np.uint8),
-                "target": spaces.Box(0, 255, (v, v, 3), np.uint8),
-                "view_objects": spaces.Box(0, 1, (n_types,), np.uint8),
-                "target_objects": spaces.Box(0, 1, (n_types,), np.uint8),
-            }
-        )
+        self.features, self.observation, self.autoreset = features, observation, autoreset
+        parts = {
+            "view": spaces.Box(0, 255, (v, v, 3), np.uint8),
+            "target": spaces.Box(0, 255, (v, v, 3), np.uint8),
+            "view_objects": spaces.Box(0, 1, (n_types,), np.uint8),
+            "target_objects": spaces.Box(0, 1, (n_types,), np.uint8),
+        }
+        if features or observation == "box":
+            # the encoder's standardized per-state features, as the learned agents see them
+            stats = encoder_feature_stats()
+            self._features = standardize(state_features(self.kitchen), stats).numpy()
+            low = standardize(np.zeros(FEATURE_DIM, np.float32), stats).numpy()
+            high = standardize(np.full(FEATURE_DIM, np.finfo(np.float16).max, np.float32), stats).numpy()
+            parts["features"] = spaces.Box(low, high, (FEATURE_DIM,), np.float32)
+            parts["target_features"] = spaces.Box(low, high, (FEATURE_DIM,), np.float32)
+        if observation == "box":
+            # one float32 row per state: its features then its visible types; an observation is the
+            # view's row then the target's
+            self._box_rows = np.concatenate([self._features, self._object_vectors.astype(np.float32)], 1)
+            zeros, ones = np.zeros(n_types, np.float32), np.ones(n_types, np.float32)
+            half_low, half_high = np.concatenate([low, zeros]), np.concatenate([high, ones])
+            self._observation_space = spaces.Box(
+                np.concatenate([half_low, half_low]), np.concatenate([half_high, half_high]), dtype=np.float32
+            )
+        else:
+            self._observation_space = spaces.Dict(parts)
         self._action_spaces = {a: spaces.Discrete(len(ACTIONS)) for a in self.possible_agents}
         self._observation_spaces = {a: self._observation_space for a in self.possible_agents}
         self.np_random, _ = seeding.np_random(None)
@@ -336,15 +369,49 @@ class NavigationEnv(ParallelEnv):
         truncations = dict(zip(names, truncated_arr.tolist()))
         infos = self._infos(names, idx)
         going = ~(terminated_arr | truncated_arr)
-        if not going.all():
+        if not going.all() and self.autoreset:
+            # each finished navigator starts its next training episode where it is listed: its
+            # observation is the new episode's first, its infos are still the ended episode's
+            ended = idx[~going]
+            for i in ended.tolist():
+                self._begin(i, *self._draw_episode())
+            observations.update(self._observations([names[j] for j in np.flatnonzero(~going)], ended))
+        elif not going.all():
             self._live = idx[going].tolist()
             self._live_agents = [a for a, on in zip(names, going.tolist()) if on]
         self.agents = list(self._live_agents)
         return observations, rewards, terminations, truncations, infos
 
+    def _begin(self, i: int, row: int, start: int, cap: int) -> None:
+        """Agent row i starts a new episode (autoreset)."""
+        self._row[i], self._state[i], self._start[i], self._cap[i] = row, start, start, cap
+        self._steps[i] = self._path[i] = self._collisions[i] = 0
+        self._success[i] = False
+        self._arrived[i] = self._tables.goal[row, start]
+        self._shortest[i] = self._tables.dist[row, start]
+
     def _observations(self, names: list[str], idx: np.ndarray) -> dict:
-        """The observation dicts of agents `names` (rows `idx`): fresh read-only views of the cache."""
+        """The observations of agents `names` (rows `idx`): dicts of read-only views of the cache,
+        with `features` their rows of the standardized features too, or (observation="box") one
+        fresh float32 vector each."""
+        states, goals = self._state[idx].tolist(), self._destination[self._row[idx]].tolist()
+        if self.observation == "box":
+            rows = self._box_rows
+            return {a: np.concatenate([rows[s], rows[d]]) for a, s, d in zip(names, states, goals)}
         views, vectors = self._views, self._object_vectors
+        if self.features:
+            f = self._features
+            return {
+                a: {
+                    "view": views[s],
+                    "target": views[d],
+                    "view_objects": vectors[s],
+                    "target_objects": vectors[d],
+                    "features": f[s],
+                    "target_features": f[d],
+                }
+                for a, s, d in zip(names, states, goals)
+            }
         return {
             a: {
                 "view": views[s],
@@ -352,7 +419,7 @@ class NavigationEnv(ParallelEnv):
                 "view_objects": vectors[s],
                 "target_objects": vectors[d],
             }
-            for a, s, d in zip(names, self._state[idx].tolist(), self._destination[self._row[idx]].tolist())
+            for a, s, d in zip(names, states, goals)
         }
 
     def _infos(self, names: list[str], idx: np.ndarray) -> dict:

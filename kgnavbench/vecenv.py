@@ -61,6 +61,7 @@ from gymnasium.vector.utils import batch_space
 from .encoder import FEATURE_DIM, N_TYPES, encoder_feature_stats, standardize, state_features
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, transition
 from .kitchens import KITCHEN_NAMES, check_name, object_types
+from .render import top_down_map
 from .tasks import VIEW_SIZE, KitchenTasks, load_task_file, load_tasks
 from .world import ACTIONS
 
@@ -487,7 +488,7 @@ class NavigationGymEnv(_Navigation, Env):
     gymnasium.Env (module docstring). reset(options={"target": id, "start": state}) starts a given
     episode instead (state: the kitchen's local state index, as in the task file's fixed episodes)."""
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"]}
 
     def __init__(
         self,
@@ -497,7 +498,11 @@ class NavigationGymEnv(_Navigation, Env):
         stop_ends: bool = True,
         max_steps: int = TRAINING_MAX_STEPS,
         views: bool = False,
+        render_mode: str | None = None,
     ):
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise VecEnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
+        self.render_mode = render_mode
         self._setup(1, kitchens, targets, success_rule, stop_ends, max_steps, views)
         self.observation_space = observation_space(views)
         self.action_space = spaces.Discrete(len(ACTIONS))
@@ -544,6 +549,17 @@ class NavigationGymEnv(_Navigation, Env):
         if terminated[0] or truncated[0]:
             info.update({k: v[0].item() for k, v in self._episode_info(slice(0, 1)).items()})
         return self._single(self._gather()), float(rewards[0]), bool(terminated[0]), bool(truncated[0]), info
+
+    def render(self):
+        """rgb_array: the top-down map of the navigator's kitchen, the navigator and its target."""
+        if self.render_mode is None:
+            return None
+        sp, nav = self.space, self.navigators
+        k = int(nav.kitchen[0])
+        graph = sp.tasks[k].graph
+        pose = graph.pose(int(nav.state[0] - sp.offsets[k]))
+        target = sp.tasks[k].target(sp.target_ids[nav.target[0]])
+        return top_down_map(graph.world, 400, [pose], None, [target.object_index])
 
     @staticmethod
     def _single(batch: dict) -> dict:
