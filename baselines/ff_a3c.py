@@ -12,7 +12,8 @@ first kitchen's heads.
 from dataclasses import dataclass
 
 from kgnavbench.models import ModelConfig
-from kgnavbench.train import TrainOptions, learn, load_policy
+from kgnavbench.policy import load_policy
+from kgnavbench.train import TrainOptions, learn
 
 DESCRIPTION = "feed-forward A3C of Zhu et al. 2017: 4 stacked frames, scene-specific heads"
 

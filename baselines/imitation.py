@@ -15,7 +15,8 @@ the steps trained on (with dagger: the steps walked).
 from dataclasses import dataclass
 
 from kgnavbench.models import ModelConfig
-from kgnavbench.train import TrainOptions, learn, load_policy
+from kgnavbench.policy import load_policy
+from kgnavbench.train import TrainOptions, learn
 
 DESCRIPTION = "imitation learning only: the expert's actions, no reward (LSTM network)"
 

@@ -14,7 +14,8 @@ kgnavbench.models for the equations and DESIGN.md "Learned agents".
 from dataclasses import dataclass
 
 from kgnavbench.models import ModelConfig
-from kgnavbench.train import TrainOptions, learn, load_policy
+from kgnavbench.policy import load_policy
+from kgnavbench.train import TrainOptions, learn
 
 DESCRIPTION = "LSTM A3C + IL + TSE + knowledge graph (GCN) with object attention (option attention)"
 

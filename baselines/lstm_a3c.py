@@ -15,7 +15,8 @@ Every training option (learning rate, agents, rollout length, ...) is a field of
 from dataclasses import dataclass
 
 from kgnavbench.models import ModelConfig
-from kgnavbench.train import TrainOptions, learn, load_policy
+from kgnavbench.policy import load_policy
+from kgnavbench.train import TrainOptions, learn
 
 DESCRIPTION = "LSTM A3C over frozen view features (options il, tse: the paper's +IL, +TSE rows)"
 

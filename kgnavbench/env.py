@@ -1,4 +1,4 @@
-"""Stage 5 — env: target-driven navigation in one kitchen as a PettingZoo ParallelEnv.
+"""Stage 6 — env: target-driven navigation in one kitchen as a PettingZoo ParallelEnv.
 
     env = kgnavbench.env.parallel_env(kitchen="FloorPlan1", n_agents=4)
     observations, infos = env.reset(seed=0)
@@ -33,8 +33,9 @@ Termination: Stop ends the episode (stop_ends=False: a Stop that does not succee
     Truncation at max_steps (5000 in training; per episode in evaluation).
 Infos (per agent, every step): success, path_length (actions, Stop not counted), episode_length,
     shortest_path (from the start, under the success rule), collisions, target, target_kind,
-    target_seen, last_view_shows_target, state, and expert_action (the BFS-optimal next action:
-    privileged, for imitation learning and the oracle).
+    target_seen, last_view_shows_target, kitchen; and, privileged (only a plugin with PRIVILEGED = True
+    sees them in evaluation: the oracle, and imitation's teacher), state (the state graph's index) and
+    expert_action (the BFS-optimal next action).
 
 autoreset=True (outside PettingZoo's contract, for SuperSuit's vector envs): a navigator whose episode
     ends stays in `env.agents` and starts its next training episode in the same step; that step's
@@ -438,7 +439,7 @@ class NavigationEnv(ParallelEnv):
             self._tables.visible[row, state].tolist(),
             self._tables.expert[row, state].tolist(),
         )
-        infos = {}
+        infos, kitchen = {}, self.kitchen
         for a, r, s, success, path, steps, shortest, collisions, shows, expert in columns:
             target, kind, seen = meta[r]
             infos[a] = {
@@ -451,6 +452,7 @@ class NavigationEnv(ParallelEnv):
                 "target_kind": kind,
                 "target_seen": seen,
                 "last_view_shows_target": shows,
+                "kitchen": kitchen,
                 "state": s,
                 "expert_action": expert,
             }

@@ -1,4 +1,4 @@
-"""Stage 9 — evaluate: the protocol. Fixed episodes through the environment, per-episode results,
+"""Stage 12 — evaluate: the protocol. Fixed episodes through the environment, per-episode results,
 and the metrics of Table I.
 
 Columns of Table I (DESIGN.md):
@@ -179,6 +179,7 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
         success_rule=config.success_rule,
         stop_ends=config.stop_ends,
         tasks=tasks,
+        features=True,  # the encoder's features of the view and target: what learned plugins look at
     )
     observations, infos = env.reset(options={"episodes": episodes})
     agents = list(env.agents)
@@ -187,9 +188,9 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
         guarded(plugin, "reset()", policy.reset, agent)
     finished: dict[str, EpisodeResult] = {}
     while env.agents:
-        shown = infos if plugin.privileged else _without_expert(infos)
+        shown = infos if plugin.privileged else without_privileged(infos)
         actions = guarded(plugin, "act()", policy.act, observations, shown)
-        _check_actions(plugin, actions, env.agents)
+        check_actions(plugin, actions, env.agents)
         observations, _, terminations, truncations, infos = env.step(actions)
         for agent in list(observations):
             if terminations[agent] or truncations[agent]:
@@ -212,11 +213,16 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
     return [finished[agent] for agent in agents]  # in episode order, not finishing order
 
 
-def _without_expert(infos: dict) -> dict:
+PRIVILEGED_INFOS = ("state", "expert_action")  # only a plugin with PRIVILEGED = True reads these
+
+
+def without_privileged(infos: dict) -> dict:
+    """The infos a plugin without PRIVILEGED sees: the env's, less the state index and expert action."""
     shown = {}
     for a, i in infos.items():
-        shown[a] = i = dict(i)  # a copy: the env's own dict keeps its expert_action
-        i.pop("expert_action", None)
+        shown[a] = i = dict(i)  # a copy: the env's own dict keeps them
+        for key in PRIVILEGED_INFOS:
+            i.pop(key, None)
     return shown
 
 
@@ -246,7 +252,7 @@ def selected_checkpoint(run: str | Path, method: str, which: str = "best") -> Pa
     return path
 
 
-def _check_actions(plugin: Plugin, actions, agents) -> None:
+def check_actions(plugin: Plugin, actions, agents) -> None:
     """act() must return {agent: integer 0..9} for every live agent; anything else names the plugin."""
     if not isinstance(actions, dict):
         raise PluginError(f"{plugin.source}: act() returned {type(actions).__name__}, not a dict of actions")

@@ -1,4 +1,4 @@
-"""Stage 6 — plugins: the baseline plugin interface and its registry.
+"""Stage 8 — plugins: the baseline plugin interface and its registry.
 
 A plugin is one Python file (the file name is the method name, `--method NAME`) in one of
   * the shipped baselines: the repository's `baselines/`, installed as the package `kgnavbench_baselines`;
@@ -7,7 +7,7 @@ A plugin is one Python file (the file name is the method name, `--method NAME`) 
 It defines
 
     DESCRIPTION = "one line: what the method is"          # required
-    PRIVILEGED = False                                    # optional; True: may read infos["expert_action"]
+    PRIVILEGED = False                                    # optional; True: sees the privileged infos
 
     @dataclass
     class Config:                                         # optional; its fields are the method's options
@@ -21,8 +21,9 @@ and the policy it returns has two methods:
     act(observations: dict[str, dict], infos: dict[str, dict]) -> dict[str, int]
                                                           # one action (0..9) per agent in observations
 
-`observations` and `infos` are exactly what `kgnavbench.env` returns for the live agents (infos
-without "expert_action" unless PRIVILEGED). The README has a worked example; `baselines/random_walk.py`
+`observations` and `infos` are exactly what `kgnavbench.env` returns for the live agents, made with
+features=True (so observations carry the encoder's `features` and `target_features`), infos without
+"state" and "expert_action" unless PRIVILEGED. The README has a worked example; `baselines/random_walk.py`
 is the one to copy.
 """
 
@@ -112,9 +113,9 @@ def guarded(plugin: Plugin, what: str, function, *args):
     except PluginError:
         raise
     except KeyError as e:
-        if e.args == ("expert_action",) and not plugin.privileged:
+        if e.args in (("expert_action",), ("state",)) and not plugin.privileged:
             raise PluginError(
-                f"{plugin.source}: {what} read infos['expert_action'], which only a plugin with "
+                f"{plugin.source}: {what} read infos[{e.args[0]!r}], which only a plugin with "
                 "PRIVILEGED = True may read"
             ) from e
         raise PluginError(f"{plugin.source}: {what} failed: KeyError: {e}") from e

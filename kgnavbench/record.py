@@ -1,4 +1,4 @@
-"""Stage 11 — record: rerun-sdk recordings of episodes and training runs, and the viewer.
+"""Stage 14 — record: rerun-sdk recordings of episodes and training runs, and the viewer.
 
 Episodes (`record_episodes`, a .rrd file), on two timelines: `step` counts actions over the whole
 recording (so scrubbing plays the episodes one after another) and `episode` numbers the episode
@@ -270,6 +270,7 @@ def record_episodes(
                 success_rule=success_rule,
                 stop_ends=stop_ends,
                 tasks=tasks,
+                features=True,  # as in evaluation
             )
             for row in (r for k, r in chosen if k == kitchen):
                 e = totals["episodes"]
@@ -325,9 +326,9 @@ def _record_episode(rec, plugin, policy, env, tasks, row: int, e: int, step: int
     total_return = 0.0
     info = infos[agent]
     while env.agents:
-        shown = infos if plugin.privileged else evaluate._without_expert(infos)
+        shown = infos if plugin.privileged else evaluate.without_privileged(infos)
         actions = guarded(plugin, "act()", policy.act, observations, shown)
-        evaluate._check_actions(plugin, actions, env.agents)
+        evaluate.check_actions(plugin, actions, env.agents)
         attended = _attention(plugin, policy, agent)
         before = trail[-1]
         a = int(actions[agent])

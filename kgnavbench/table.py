@@ -1,4 +1,4 @@
-"""Stage 10 — table: the paper's Table I from a table spec (`tables/table1.toml`).
+"""Stage 13 — table: the paper's Table I from a table spec (`tables/table1.toml`).
 
 The spec names the protocol (success rule, Stop, episode caps, checkpoint selection), the presets
 (frames per row, episodes per target, seeds, kitchens, training options), the rows (a plugin and its

@@ -1,4 +1,4 @@
-"""Stage 8 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
+"""Stage 10 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
 imitation learning (IL), target skill extension (TSE), checkpoints, logs and resumption.
 
 Read it top to bottom:
@@ -27,7 +27,7 @@ Read it top to bottom:
    optimiser, every RNG, every agent's episode and LSTM state, the co-visibility counts): a run killed
    at any moment resumes from `last.pt` exactly as if it had never stopped.
 6. `learn`: the loop, `metrics.csv`, progress lines, `last.pt` / `best.pt` (best validation SR).
-7. `LearnedPolicy`: a trained checkpoint as a plugin policy, batched over all agents of one `act`.
+A trained checkpoint becomes a plugin policy in the next stage, kgnavbench/policy.py.
 """
 
 from __future__ import annotations
@@ -52,13 +52,12 @@ import torch.nn.functional as F
 from . import claims, encoder, models
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, reward
 from .files import atomic_write, first_line, git_revision
-from .kitchens import KITCHEN_NAMES, check_name, object_types
+from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import load_plugin
 from .tasks import (
     MIN_START_DISTANCE,
     STOP,
     load_task_file,
-    load_tasks,
     optimal_action_mask,
     shortest_trajectory,
     walk_back_trajectory,
@@ -635,6 +634,11 @@ class Model:
         """One forward pass: agents in `states` (or their frame `history` (B, H) for FF) toward the
         target images of `goals` (states); `graph`: the knowledge graph's terms (`Model.graph`)."""
         view, target, target_rows, r_t, r_g = self.inputs(space, states, goals, history)
+        return self.forward(view, target, target_rows, r_t, r_g, hidden, graph, scene)
+
+    def forward(self, view, target, target_rows, r_t, r_g, hidden, graph, scene=None):
+        """One forward pass on the network's inputs themselves (as `inputs` gives them; the evaluation
+        policy builds them from the env's observations); scene: (B,) training-kitchen indices (FF)."""
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
             logits, value, hidden, extras = self.net(
                 view,
@@ -1206,125 +1210,3 @@ def _metrics_row(trainer: Trainer, seconds: float, frames_done: int, val_sr: flo
         "val_sr": "" if math.isnan(val_sr) else f"{val_sr:.2f}",
         "val_spl": "" if math.isnan(val_spl) else f"{val_spl:.2f}",
     }
-
-
-# ------------------------------------------------------------------------------------------------
-# 7. A trained checkpoint as a plugin policy
-
-
-class LearnedPolicy:
-    """reset(agent) / act(observations, infos) for evaluation: one batched forward pass over all agents
-    of a call, an LSTM state (or FF frame history) per agent. Views are looked up as per-state features
-    through infos["state"] (the features are a function of the view; the kitchen is the one whose view
-    at that state is the observed one)."""
-
-    def __init__(self, checkpoint: Path | str, seed: int = 0):
-        ck = load_checkpoint(checkpoint)
-        self.config = models.ModelConfig(**ck["model_config"])
-        net = models.make_model(self.config)
-        try:
-            net.load_state_dict(ck["model"])
-        except (RuntimeError, KeyError) as e:
-            raise TrainError(f"checkpoint {checkpoint} does not fit its model ({e})") from e
-        net.eval()
-        covis = models.CoVisibility()
-        covis.load_state_dict(ck["covis"])
-        self.model = Model(net, self.config, covis, ck["options"].get("bf16", False))
-        with torch.no_grad():
-            self.graph = self.model.graph()
-        self.training_kitchens = list(ck["kitchens"])
-        self.success_rule = ck["options"].get("success_rule", "destination")
-        self.generator = torch.Generator().manual_seed(seed)
-        self.space: StateSpace | None = None
-        self.scene = 0
-        self.rows: dict[str, int] = {}
-        self.slot: dict[str, int] = {}
-        self.hidden = None  # (h, c) rows per slot; None for FF
-        self.history: np.ndarray | None = None  # FF: (slots, history) states
-        self.fresh: set[str] = set()
-        self.type_names = object_types()
-        self.attention: dict[str, list[tuple[str, float]]] = {}
-
-    def reset(self, agent: str) -> None:
-        if agent not in self.slot:
-            self.slot[agent] = len(self.slot)
-            grown = self.model.net.initial_state(len(self.slot))
-            if grown is not None and self.hidden is not None:
-                grown = tuple(torch.cat([h, g[len(h) :]]) for h, g in zip(self.hidden, grown))
-            self.hidden = grown
-        i = self.slot[agent]
-        if self.hidden is not None:
-            for h in self.hidden:
-                h[i] = 0.0
-        self.fresh.add(agent)
-
-    def _load_kitchen(self, observations: dict, infos: dict) -> None:
-        agent = next(iter(observations))
-        state, target = int(infos[agent]["state"]), infos[agent]["target"]
-        view = np.asarray(observations[agent]["view"])
-        record = load_task_file()["kitchens"]
-        candidates = [k for k, r in record.items() if any(t["object"] == target for t in r["targets"])]
-        for k in sorted(candidates, key=KITCHEN_NAMES.index):
-            views = load_tasks(k).graph.views
-            if state < len(views) and np.array_equal(views[state], view):
-                self.space = build_space([k], "all", self.success_rule, self.config.pixels)
-                self.rows = {t: r for r, t in enumerate(self.space.target_ids)}
-                self.scene = self.training_kitchens.index(k) if k in self.training_kitchens else 0
-                return
-        raise TrainError(f"no kitchen shows the observed view at state {state} for target {target}")
-
-    def act(self, observations: dict, infos: dict) -> dict:
-        agents = list(observations)
-        if not agents:
-            return {}
-        if self.space is None:
-            self._load_kitchen(observations, infos)
-        states = np.fromiter((infos[a]["state"] for a in agents), np.int64, len(agents))
-        goals = self.space.destination[[self.rows[infos[a]["target"]] for a in agents]]
-        for a in agents:
-            if a not in self.slot:
-                self.reset(a)
-        slots = np.fromiter((self.slot[a] for a in agents), np.int64, len(agents))
-        history = None
-        if self.config.arch == "ff":
-            if self.history is None or len(self.history) < len(self.slot):
-                grown = np.zeros((len(self.slot), self.config.history), np.int64)
-                if self.history is not None:
-                    grown[: len(self.history)] = self.history
-                self.history = grown
-            for a, s in zip(agents, states):
-                if a in self.fresh:
-                    self.history[self.slot[a]] = s
-            self.history[slots] = np.concatenate([self.history[slots, 1:], states[:, None]], 1)
-            history = self.history[slots]
-        self.fresh.difference_update(agents)
-        scene = np.full(len(agents), self.scene, np.int64) if self.config.arch == "ff" else None
-        with torch.no_grad():
-            logits, _, rows, extras = self.model(
-                self.space, states, goals, _rows(self.hidden, slots), self.graph, scene, history
-            )
-            actions = torch.multinomial(F.softmax(logits, -1), 1, generator=self.generator).squeeze(1)
-        if self.hidden is not None:
-            for h, r in zip(self.hidden, rows):
-                h[slots] = r
-        if extras["attention"] is not None:  # for recordings: `explain`
-            weights, types = extras["attention"].float().topk(3, dim=1)
-            self.attention = {
-                a: [(self.type_names[t], float(w)) for t, w in zip(ts.tolist(), ws.tolist()) if w > 0]
-                for a, ts, ws in zip(agents, types, weights)
-            }
-        return dict(zip(agents, actions.tolist()))
-
-    def explain(self, agent: str) -> dict:
-        """What the last act() attended to for this agent: the top-3 object types with their weights
-        (KG + attention models; an empty list for the others)."""
-        return {"attention": self.attention.get(agent, [])}
-
-
-def load_policy(checkpoint: Path | str | None, seed: int = 0) -> LearnedPolicy:
-    """The policy of a trained checkpoint (a learned plugin's make_policy)."""
-    if checkpoint is None:
-        raise TrainError(
-            "this method needs a trained checkpoint: run `kgnavbench train`, then eval --run DIR"
-        )
-    return LearnedPolicy(checkpoint, seed)

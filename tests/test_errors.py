@@ -67,7 +67,11 @@ BROKEN_POLICIES = {
     "actions_missing": (WALKER.format(reset="pass", act="return {}"), "missing"),
     "peeks_at_the_expert": (
         WALKER.format(reset="pass", act="return {a: infos[a]['expert_action'] for a in observations}"),
-        "PRIVILEGED",
+        "infos['expert_action'], which only a plugin with PRIVILEGED",
+    ),
+    "peeks_at_the_state": (
+        WALKER.format(reset="pass", act="return {a: infos[a]['state'] % 10 for a in observations}"),
+        "infos['state'], which only a plugin with PRIVILEGED",
     ),
     "exits_on_import": ("import sys\nsys.exit('no')\n", "failed to import: SystemExit"),
 }

@@ -114,3 +114,24 @@ def test_an_installed_kgnavbench_evaluates_from_another_directory(
     )
     methods = sh(kgnavbench, "methods", cwd=elsewhere, env=env).stdout
     assert "mine" in methods and "random_walk" in methods
+
+
+def test_a_stage_imports_only_the_stages_before_it():
+    """The data flow of DESIGN.md: every `Stage N` module imports stages numbered below N only (the
+    helpers without a stage number, files, claims and intervals, are free to use)."""
+    import re
+
+    package = ROOT / "kgnavbench"
+    number = {}
+    for path in package.glob("*.py"):
+        found = re.match(r'"""Stage (\d+) ', path.read_text())
+        if found:
+            number[path.stem] = int(found.group(1))
+    assert len(number) >= 15 and len(set(number.values())) == len(number), number
+    for stage, n in number.items():
+        text = (package / f"{stage}.py").read_text()
+        imported = re.findall(r"^\s*from \.(\w+) import", text, re.M)
+        for names in re.findall(r"^\s*from \. import ([\w, ]+)", text, re.M):
+            imported += [x.strip() for x in names.split(",")]
+        later = [m for m in imported if number.get(m, -1) >= n]
+        assert not later, f"{stage} (stage {n}) imports {later}"

@@ -19,6 +19,7 @@ import torch
 
 from kgnavbench import models, train, vecenv
 from kgnavbench.cli import main
+from kgnavbench.kitchens import object_types
 from kgnavbench.tasks import STOP
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -185,7 +186,7 @@ def test_subtarget_sampler_keeps_every_candidate_below_k_and_checkpoints():
 def test_subtargets_exclude_the_unseen_targets_unless_asked(floorplan1_tasks):
     """TSE (seen targets), the default: no unseen target of a training kitchen may become a
     sub-target; the other agents' training targets may, an agent's own target may not."""
-    types = {t: i for i, t in enumerate(train.object_types())}
+    types = {t: i for i, t in enumerate(object_types())}
     unseen = {types[t.type] for t in floorplan1_tasks.targets if not t.seen}
     seen = {types[t.type] for t in floorplan1_tasks.targets if t.seen}
     default = vecenv.build_space(["FloorPlan1"], "seen", "destination")

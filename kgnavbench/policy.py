@@ -1,0 +1,148 @@
+"""Stage 11 — policy: a trained checkpoint as a plugin policy, on what the env shows every plugin.
+
+`load_policy(checkpoint)` is the learned plugins' `make_policy`. The policy reads only the
+observations (`features` and `target_features`, the frozen encoder's standardized features of the view
+and of the target image, or the views themselves for a pixels model; `view_objects`,
+`target_objects`) and the infos' `target` (to run the target's layers once per distinct target) and
+`kitchen` (the FF model's scene-specific layer): nothing privileged, no state index. One batched
+forward pass over all agents of an `act` call; an LSTM state (or, FF, a history of frames) per agent.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from . import models
+from .kitchens import object_types
+from .train import Model, TrainError, _rows, load_checkpoint
+
+
+class LearnedPolicy:
+    """reset(agent) / act(observations, infos) for evaluation (module docstring)."""
+
+    def __init__(self, checkpoint: Path | str, seed: int = 0):
+        ck = load_checkpoint(checkpoint)
+        self.config = models.ModelConfig(**ck["model_config"])
+        net = models.make_model(self.config)
+        try:
+            net.load_state_dict(ck["model"])
+        except (RuntimeError, KeyError) as e:
+            raise TrainError(f"checkpoint {checkpoint} does not fit its model ({e})") from e
+        net.eval()
+        covis = models.CoVisibility()
+        covis.load_state_dict(ck["covis"])
+        self.model = Model(net, self.config, covis, ck["options"].get("bf16", False))
+        with torch.no_grad():
+            self.graph = self.model.graph()
+        self.training_kitchens = list(ck["kitchens"])
+        self.ff = self.config.arch == "ff"
+        # what the network looks at: the views for an end-to-end (pixels) model, else their features
+        self.view_key, self.target_key = (
+            ("view", "target") if self.config.pixels else ("features", "target_features")
+        )
+        self.generator = torch.Generator().manual_seed(seed)
+        self.slot: dict[str, int] = {}
+        self.hidden = None  # (h, c) rows per slot; None for FF
+        self.frames: np.ndarray | None = None  # FF: (slots, history, *view) the last frames per slot
+        self.fresh: set[str] = set()
+        self.type_names = object_types()
+        self.attention: dict[str, list[tuple[str, float]]] = {}
+
+    def reset(self, agent: str) -> None:
+        if agent not in self.slot:
+            self.slot[agent] = len(self.slot)
+            grown = self.model.net.initial_state(len(self.slot))
+            if grown is not None and self.hidden is not None:
+                grown = tuple(torch.cat([h, g[len(h) :]]) for h, g in zip(self.hidden, grown))
+            self.hidden = grown
+        i = self.slot[agent]
+        if self.hidden is not None:
+            for h in self.hidden:
+                h[i] = 0.0
+        self.fresh.add(agent)
+
+    def _missing(self, observation: dict) -> None:
+        for key in (self.view_key, self.target_key):
+            if key not in observation:
+                raise TrainError(
+                    f"the observations have no {key!r}: a learned policy needs the env's features "
+                    "(parallel_env(..., features=True), as kgnavbench eval makes it)"
+                )
+
+    def act(self, observations: dict, infos: dict) -> dict:
+        agents = list(observations)
+        if not agents:
+            return {}
+        shown = [observations[a] for a in agents]
+        self._missing(shown[0])
+        for a in agents:
+            if a not in self.slot:
+                self.reset(a)
+        slots = np.fromiter((self.slot[a] for a in agents), np.int64, len(agents))
+        now = np.stack([o[self.view_key] for o in shown])
+        r_t = torch.from_numpy(np.stack([o["view_objects"] for o in shown]).astype(np.float32))
+        r_g = torch.from_numpy(np.stack([o["target_objects"] for o in shown]).astype(np.float32))
+        scene, target_rows = None, None
+        if self.ff:
+            view = torch.from_numpy(self._frames(agents, slots, now))
+            target = torch.from_numpy(np.stack([o[self.target_key] for o in shown]))
+            scene = np.array([self._scene(infos[a]["kitchen"]) for a in agents], np.int64)
+        else:  # each distinct target's layers once, with the row of every agent's
+            distinct, first, rows = np.unique(
+                [infos[a]["target"] for a in agents], return_index=True, return_inverse=True
+            )
+            view = torch.from_numpy(now)
+            target = torch.from_numpy(np.stack([shown[i][self.target_key] for i in first]))
+            target_rows = torch.from_numpy(rows.reshape(-1))
+        self.fresh.difference_update(agents)
+        with torch.no_grad():
+            logits, _, rows_after, extras = self.model.forward(
+                view, target, target_rows, r_t, r_g, _rows(self.hidden, slots), self.graph, scene
+            )
+            actions = torch.multinomial(F.softmax(logits, -1), 1, generator=self.generator).squeeze(1)
+        if self.hidden is not None:
+            for h, r in zip(self.hidden, rows_after):
+                h[slots] = r
+        if extras["attention"] is not None:  # for recordings: `explain`
+            weights, types = extras["attention"].float().topk(3, dim=1)
+            self.attention = {
+                a: [(self.type_names[t], float(w)) for t, w in zip(ts.tolist(), ws.tolist()) if w > 0]
+                for a, ts, ws in zip(agents, types, weights)
+            }
+        return dict(zip(agents, actions.tolist()))
+
+    def _frames(self, agents: list[str], slots: np.ndarray, now: np.ndarray) -> np.ndarray:
+        """FF: each agent's last `history` frames, this one last (a new episode: this one repeated)."""
+        h = self.config.history
+        if self.frames is None or len(self.frames) < len(self.slot):
+            grown = np.zeros((len(self.slot), h, *now.shape[1:]), now.dtype)
+            if self.frames is not None:
+                grown[: len(self.frames)] = self.frames
+            self.frames = grown
+        for j, a in enumerate(agents):
+            if a in self.fresh:
+                self.frames[self.slot[a]] = now[j]
+        self.frames[slots] = np.concatenate([self.frames[slots, 1:], now[:, None]], 1)
+        return self.frames[slots]
+
+    def _scene(self, kitchen: str) -> int:
+        """The FF model's scene-specific layer: its own for a training kitchen, the first elsewhere."""
+        return self.training_kitchens.index(kitchen) if kitchen in self.training_kitchens else 0
+
+    def explain(self, agent: str) -> dict:
+        """What the last act() attended to for this agent: the top-3 object types with their weights
+        (KG + attention models; an empty list for the others)."""
+        return {"attention": self.attention.get(agent, [])}
+
+
+def load_policy(checkpoint: Path | str | None, seed: int = 0) -> LearnedPolicy:
+    """The policy of a trained checkpoint (a learned plugin's make_policy)."""
+    if checkpoint is None:
+        raise TrainError(
+            "this method needs a trained checkpoint: run `kgnavbench train`, then eval --run DIR"
+        )
+    return LearnedPolicy(checkpoint, seed)
