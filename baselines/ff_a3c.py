@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 from kgnavbench.models import ModelConfig
 from kgnavbench.policy import load_policy
-from kgnavbench.train import TrainOptions, learn
+from kgnavbench.runs import TrainOptions
+from kgnavbench.train import learn
 
 DESCRIPTION = "feed-forward A3C of Zhu et al. 2017: 4 stacked frames, scene-specific heads"
 

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 from kgnavbench.models import ModelConfig
 from kgnavbench.policy import load_policy
-from kgnavbench.train import TrainOptions, learn
+from kgnavbench.runs import TrainOptions
+from kgnavbench.train import learn
 
 DESCRIPTION = "LSTM A3C + IL + TSE + knowledge graph (GCN) with object attention (option attention)"
 

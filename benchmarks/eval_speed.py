@@ -31,7 +31,7 @@ import torch
 
 from kgnavbench.evaluate import EvalConfig, evaluate
 from kgnavbench.plugins import parse_options
-from kgnavbench.train import train_method
+from kgnavbench.runs import train_method
 
 
 def main() -> None:

@@ -23,8 +23,8 @@ from pathlib import Path
 
 from kgnavbench.cli import _frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
 from kgnavbench.evaluate import EvalConfig, evaluate
+from kgnavbench.runs import train_method
 from kgnavbench.table import load_spec
-from kgnavbench.train import train_method
 
 ROWS = [
     (row.name, row.method, row.options)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from kgnavbench import train
+from kgnavbench import runs, train
 from kgnavbench.plugins import load_plugin
 
 ROWS = [
@@ -39,7 +39,7 @@ ROWS = [
 def trainer_of(method: str, options: dict, kitchens: tuple[str, ...], directory: Path):
     plugin = load_plugin(method)
     config = plugin.config(options)
-    run = train.Run(directory, method, 10**12, 0, kitchens, progress=lambda line: None)
+    run = runs.Run(directory, method, 10**12, 0, kitchens, progress=lambda line: None)
     model_config = plugin.module.model_config(config)
     return train.Trainer(run, config, model_config, rl=method != "imitation"), config
 
@@ -66,11 +66,11 @@ def main() -> None:
     extra = dict(kv.split("=", 1) for kv in args.set)
     if args.agents:
         extra["agents_per_kitchen"] = str(args.agents)
-        if args.agents < 7 and "fixed_targets" in train.TrainOptions.__dataclass_fields__:
+        if args.agents < 7 and "fixed_targets" in runs.TrainOptions.__dataclass_fields__:
             extra.setdefault("fixed_targets", "false")  # one target per agent needs 7 agents per kitchen
     rows = [(m, {**o, **extra}) for m, o in rows]
     torch.set_num_threads(args.threads)
-    kitchens = train.training_kitchens(tuple(k for k in args.kitchens.split(",") if k))
+    kitchens = runs.training_kitchens(tuple(k for k in args.kitchens.split(",") if k))
     print(f"{len(kitchens)} training kitchens, {args.threads} threads, torch {torch.__version__}")
     with tempfile.TemporaryDirectory() as tmp:
         for method, options in rows:

@@ -372,7 +372,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
     from .models import ModelError
-    from .train import TrainError, train_method
+    from .runs import TrainError, train_method
 
     options = parse_options(args.set or [])
     kitchens = _kitchen_list(args.kitchens) if args.kitchens is not None else ()
@@ -403,8 +403,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_figures(args: argparse.Namespace) -> int:
     from .figures import FigureError, figures_of_table
     from .record import RecordError
+    from .runs import TrainError
     from .table import TableError
-    from .train import TrainError
 
     try:
         paths = figures_of_table(args.preset, args.runs, args.out, args.spec, progress=print)
@@ -452,6 +452,7 @@ def cmd_encoder(args: argparse.Namespace) -> int:
 
 def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
+    from .runs import TrainError
     from .table import (
         SPEC_FILE,
         TableError,
@@ -463,7 +464,6 @@ def cmd_table(args: argparse.Namespace) -> int:
         to_markdown,
         write_table,
     )
-    from .train import TrainError
 
     def say(line: str) -> None:
         print(line, flush=True)

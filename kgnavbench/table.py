@@ -1,4 +1,4 @@
-"""Stage 13 — table: the paper's Table I from a table spec (`tables/table1.toml`).
+"""Stage 15 — table: the paper's Table I from a table spec (`tables/table1.toml`).
 
 The spec names the protocol (success rule, Stop, episode caps, checkpoint selection), the presets
 (frames per row, episodes per target, seeds, kitchens, training options), the rows (a plugin and its
@@ -60,8 +60,8 @@ from .intervals import (
 )
 from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, available, load_plugin
+from .runs import train_method
 from .tasks import EPISODES_PER_TARGET, load_task_file
-from .train import train_method
 
 SPEC_FILE = Path(__file__).resolve().parent.parent / "tables" / "table1.toml"
 CHECKPOINT_RULES = ("best_val_sr",)

@@ -1,68 +1,62 @@
-"""Stage 10 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
+"""Stage 12 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
 imitation learning (IL), target skill extension (TSE), checkpoints, logs and resumption.
 
-Read it top to bottom:
+It stands on the stages before it: the run directory and options (kgnavbench/runs.py), the batched
+navigators over all training kitchens' state graphs as one (kgnavbench/vecenv.py: a step is a handful
+of NumPy gathers through the env's own `transition`), the losses and the IL and TSE data
+(kgnavbench/losses.py) and the networks (kgnavbench/models.py). Read it top to bottom:
 
-1. Options and runs. `TrainOptions` holds every option a learned method shares (a plugin's `Config`
-   extends it); `train_method` resolves a plugin's config into a run directory
-   `runs/train/<method>-<hash>/` (a hash of the config, the plugin's source, the training code, frames,
-   seed and kitchens), writes `config.json` once with the git revision, and calls the plugin's `train`
-   hook.
-2. The state space. The training kitchens' state graphs are concatenated into one global state space
-   (per kitchen an offset into one next-state table, one success table, the object vectors and the
-   per-state features of `models.state_features`), so `Navigators.step` — one step of every agent in
-   every kitchen — is a handful of NumPy gathers with exactly the env's semantics (kgnavbench/env.py:
-   -0.01 per step, +0.01 on the first arrival at a goal state, +10 on success, Stop ends the episode,
-   starts at pitch 0 without the target in view and at least 10 actions from its destination).
-3. The losses. `n_step_returns`, `actor_critic_loss` (policy gradient, value loss with weight
-   `value_weight`, entropy bonus; optional per-sample weights for TSE's importance weights) and
-   `imitation_loss` (cross-entropy on expert actions).
-4. IL data (one expert trajectory per training target: the paper's walk back from the destination)
-   and TSE (`SubtargetSampler`, `relabel`): per episode, 5 sub-targets sampled at random among the
-   states that showed a novel object (a pickupable that is no target) or another agent's training
-   target; each becomes "reach this state and Stop", with its view as the target image, rewards
-   recomputed and a final Stop worth +10.
-5. `Trainer`: the rollout (20 steps of all agents, forward passes with autograd, one backward per
-   rollout), the IL and TSE passes, validation on fixed episodes, and the checkpoint (model,
-   optimiser, every RNG, every agent's episode and LSTM state, the co-visibility counts): a run killed
-   at any moment resumes from `last.pt` exactly as if it had never stopped.
-6. `learn`: the loop, `metrics.csv`, progress lines, `last.pt` / `best.pt` (best validation SR).
+1. `Model`: the network with what it needs around it (the state space's features and object
+   vectors, the knowledge graph's per-update terms, FF frame histories, scene ids); `unroll` replays a
+   rollout with autograd.
+2. `Trainer`: the rollout (20 steps of all agents, then one learning pass over them), the IL and TSE
+   passes, validation on fixed episodes, and the checkpoint (model, optimiser, every RNG, every agent's
+   episode and LSTM state, the co-visibility counts): a run killed at any moment resumes from
+   `last.pt` exactly as if it had never stopped.
+3. `learn`: the loop, `metrics.csv`, progress lines, `last.pt` / `best.pt` (best validation SR).
 A trained checkpoint becomes a plugin policy in the next stage, kgnavbench/policy.py.
 """
 
 from __future__ import annotations
 
-import ast
 import csv
 import dataclasses
-import hashlib
 import io
 import json
 import math
 import random
 import time
-from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import claims, encoder, models
-from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, reward
-from .files import atomic_write, first_line, git_revision
-from .kitchens import KITCHEN_NAMES, check_name
-from .plugins import load_plugin
+from . import encoder, models
+from .env import reward
+from .files import atomic_write, first_line
+from .kitchens import KITCHEN_NAMES
+from .losses import (
+    Sequences,
+    SubtargetSampler,
+    actor_critic_loss,
+    assign_targets,
+    expert_sequences,
+    imitation_loss,
+    n_step_returns,
+    optimal_action_loss,
+    optimal_actions,
+    pad,
+    relabel,
+    subtarget_types,
+)
+from .runs import Run, TrainError, TrainOptions
 from .tasks import (
-    MIN_START_DISTANCE,
     STOP,
     load_task_file,
-    optimal_action_mask,
-    shortest_trajectory,
-    walk_back_trajectory,
 )
-from .vecenv import CURRICULUM_REACH, Navigators, StateSpace, arrays_state, build_space, load_arrays
+from .vecenv import CURRICULUM_REACH, Navigators, StateSpace, build_space
 
 CHECKPOINT_FORMAT = 1
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
@@ -84,495 +78,8 @@ METRICS = (
 )
 
 
-class TrainError(ValueError):
-    """Bad training input or state: a bad option, a run directory holding another config, a corrupt
-    checkpoint. Reported as one line."""
-
-
 # ------------------------------------------------------------------------------------------------
-# 1. Options and runs
-
-
-@dataclass
-class TrainOptions:
-    """Options every learned method shares (`--set key=value`). A plugin's Config extends this."""
-
-    success_rule: str = "destination"  # the paper's: Stop at the destination; "visible": SAVN's
-    # Training episodes treat a wrong Stop as a no-op (evaluation ends the episode). Ending them from
-    # the start, stopping at once (-0.01) beats every walk that does not reach the destination, and a
-    # policy that has never succeeded learns just that (measured: SR 0 after 750k frames in
-    # FloorPlan1). `stop_ends_from=N` ends them from frame N on, a curriculum; measured in FloorPlan1
-    # with N = 1M, the training SR fell from 95% to under 1% within 750k frames of the switch. With
-    # start_curriculum (below) the agents succeed from the first updates, and N = 0 works.
-    stop_ends_from: int | None = None
-    # ... and costs this much more than a step (the paper's rewards otherwise): without it the agent
-    # learns that a wrong Stop costs no more than a move, Stops often, and evaluation punishes that
-    wrong_stop_penalty: float = 0.0
-    # actions per training episode (the task's 5000); shorter episodes mean more of them per frame
-    episode_cap: int = TRAINING_MAX_STEPS
-    # a curriculum on start distance over this fraction of the run's frames: training episodes start
-    # as near the destination as a start can be (no receptacle open, pitch 0), then ever farther (a
-    # distance drawn uniformly from 0 to a reach that grows linearly to CURRICULUM_REACH actions; the
-    # nearest start below it where none lies at it), then from the training starts as usual. Without
-    # imitation the agents otherwise meet too few successes to learn from in a short run: a
-    # destination is one state of thousands (measured, 20 kitchens, 2M frames, lstm_a3c with
-    # stop_ends_from=0 and episode_cap=200: seen/seen SR 0 without, 8.6 / 7.6% with 1.0). 0 = off
-    start_curriculum: float = 0.0
-    agents_per_kitchen: int = 64  # agents per training kitchen, all stepped at once
-    # each agent keeps one training target (agent j of a kitchen: its target j mod the kitchen's
-    # targets), as the paper's "140 threads, each thread learns for a different target"; false: every
-    # episode draws a target of the agent's kitchen
-    fixed_targets: bool = True
-    n_steps: int = 20  # rollout length: n-step returns
-    lr: float = 7e-4  # Adam
-    gamma: float = 0.99
-    value_weight: float = 0.5  # alpha: weight of the value loss
-    entropy: float = 0.01  # weight of the entropy bonus
-    max_grad_norm: float = 10.0
-    # bfloat16 autocast (CPU). Off by default: on a CPU without native bf16 (no AVX512-BF16 or AMX;
-    # torch.ops.mkldnn._is_mkldnn_bf16_supported() is False on the 2-core development machine) autocast's
-    # bf16 products run in ATen's reference kernels (measured there, kg_attention il+tse, 140 agents,
-    # 2 threads, under load from another process: 421 frames/s with bf16, 4,878 without)
-    bf16: bool = False
-    hidden: int = 256  # siamese / fusion width
-    lstm: int = 256
-    # imitation learning: cross-entropy on expert trajectories
-    il: bool = False
-    # "walk_back": the paper's expert, "only one expert trajectory for each training target": from the
-    # destination, MoveBack, else MoveLeft, else RotateRight, for a walk of random length, reversed;
-    # "shortest": one BFS-optimal path per target from a training start; "dagger": the BFS-optimal
-    # actions of every state the agents visit (DAgger with a privileged shortest-path teacher, not the
-    # paper's IL: it learns far more, e.g. 91% seen/seen SR against the paper's 8%)
-    il_expert: str = "walk_back"
-    il_walk: int = 25  # the walk back is 10..il_walk steps long (drawn per target), as the training starts
-    il_frames: int = 2_000_000  # IL is mixed into the loss until this many frames ("online")
-    il_batch: int = 32  # expert trajectories per update
-    il_weight: float = 1.0
-    # target skill extension: relabelled sub-trajectories of the agents' own episodes
-    tse: bool = False
-    tse_subtargets: int = 5  # per episode, sampled at random among the states that show a novel object
-    # the seen kitchens' unseen targets may be sub-targets (the paper's "TSE (targets)"): this trains on
-    # the seen-kitchens/unseen-targets column's test targets, so it is off by default ("TSE (seen targets)")
-    tse_unseen_targets: bool = False
-    tse_window: int = 40  # steps before the sub-target that are relabelled
-    tse_batch: int = 64  # sub-trajectories per update
-    # measured in FloorPlan1 (lstm_a3c il=true tse=true, 3M frames): at 1.0 the relabelled "Stop
-    # here, +10" episodes outweighed the rest and the agents learned to Stop anywhere (evaluation SR 0)
-    tse_weight: float = 0.1
-    # truncated importance weights min(1, pi/mu) on the relabelled steps. Without them every action of a
-    # relabel (mostly ending in +10) is pushed up whatever the current policy thinks of it, and the
-    # policy collapses onto its own habits. Measured, 20 kitchens, 80 agents, 2M frames, seen/seen SR
-    # static / actionable without -> with: +TSE (with start_curriculum) 0.0 / 0.0 -> 9.9 / 6.8,
-    # +IL+TSE 21.0 / 17.8 -> 62.3 / 62.7, +KG+Attention 73.5 / 77.1 -> 43.2 / 31.4 (one seed each)
-    tse_importance: bool = True
-    # a wrong Stop in a sub-target's window is an episode of the relabelled task too, one that failed:
-    # "Stop here, short of the sub-target" (-0.01, no +10) trains beside the successful relabel. Without
-    # these the relabels only ever reward Stop, and since training's wrong Stop is a no-op the agents
-    # learned to Stop everywhere (measured, 20 kitchens, 2M frames: lstm_a3c tse=true ended its
-    # evaluation episodes after ~6 actions, SR 0)
-    tse_failures: bool = True
-    # logs, checkpoints, validation
-    log_every: int = 200_000  # frames between metrics rows (and checkpoints)
-    val_every: int = 1_000_000  # frames between validations (and at the end)
-    val_kitchens: int = 5  # the first N validation kitchens
-    val_episodes: int = 5  # the first N fixed episodes per target
-    threads: int = 2
-    # end to end from pixels: the encoder CNN (from the committed weights) trains with the policy on
-    # the 84x84 views instead of reading cached features (the GPU path; slow on a CPU)
-    pixels: bool = False
-
-    def __post_init__(self) -> None:
-        self.check()  # a bad option fails when the config is made, before a run directory exists
-
-    def check(self) -> None:
-        if self.success_rule not in SUCCESS_RULES:
-            raise TrainError(f"success_rule must be one of {SUCCESS_RULES}, not {self.success_rule!r}")
-        if self.il_expert not in EXPERTS:
-            raise TrainError(f"il_expert must be one of {EXPERTS}, not {self.il_expert!r}")
-        positive = (
-            "episode_cap agents_per_kitchen n_steps hidden lstm il_batch tse_window tse_batch log_every "
-            "val_every val_kitchens val_episodes threads il_walk"
-        )
-        for name in positive.split():
-            if getattr(self, name) < 1:
-                raise TrainError(f"{name} must be at least 1, not {getattr(self, name)}")
-        if not (0 < self.gamma <= 1 and self.lr > 0 and self.max_grad_norm > 0):
-            raise TrainError("need 0 < gamma <= 1, lr > 0 and max_grad_norm > 0")
-        if min(self.tse_subtargets, self.il_frames, self.stop_ends_from or 0) < 0:
-            raise TrainError("tse_subtargets, il_frames and stop_ends_from must not be negative")
-        if not 0 <= self.start_curriculum <= 1:
-            raise TrainError(
-                f"start_curriculum is a fraction of the run, 0 to 1, not {self.start_curriculum}"
-            )
-
-
-@dataclass(frozen=True)
-class Run:
-    """Where and how long a plugin's `train` hook trains."""
-
-    directory: Path
-    method: str
-    frames: int
-    seed: int
-    kitchens: tuple[str, ...]  # training kitchens (their seen targets only)
-    progress: Callable[[str], None] = print
-
-
-def training_kitchens(kitchens=()) -> tuple[str, ...]:
-    """The training kitchens to train on: all of the split, or the given ones (each must be one)."""
-    train = load_task_file()["splits"]["train"]
-    if not kitchens:
-        return tuple(sorted(train, key=KITCHEN_NAMES.index))
-    for k in kitchens:
-        check_name(k)
-        if k not in train:
-            raise TrainError(f"{k} is not a training kitchen (training kitchens: {', '.join(train)})")
-    return tuple(dict.fromkeys(kitchens))
-
-
-# the library code that decides a run's numbers besides the plugin: the training starts and the state
-# graphs' semantics, the env's rewards, the models and this trainer (kitchens, world and render reach a
-# run through the state-graph cache, which is keyed by their own fingerprint)
-TRAINING_CODE = ("tasks.py", "encoder.py", "env.py", "vecenv.py", "models.py", "train.py")
-
-
-def training_code_sha256(package: Path = Path(__file__).parent) -> str:
-    """A hash of the training code's syntax trees without docstrings, so that a finished run is not
-    reused after a change to how runs train, while comments, docstrings and formatting do not count."""
-    digest = hashlib.sha256()
-    for name in TRAINING_CODE:
-        tree = ast.parse((package / name).read_text(), filename=name)
-        for node in ast.walk(tree):
-            body = getattr(node, "body", None)
-            if (
-                isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
-                and body
-                and isinstance(body[0], ast.Expr)
-                and isinstance(body[0].value, ast.Constant)
-                and isinstance(body[0].value.value, str)
-            ):
-                node.body = body[1:] or [ast.Pass()]
-        digest.update(f"{name}\0{ast.dump(tree)}\0".encode())
-    return digest.hexdigest()
-
-
-def run_record(plugin, config, frames: int, seed: int, kitchens: tuple[str, ...]) -> dict:
-    """What decides a run: its hash names the run directory."""
-    return {
-        "method": plugin.name,
-        "options": json.loads(json.dumps(asdict(config))),
-        "plugin_source_sha256": hashlib.sha256(plugin.source_bytes()).hexdigest(),
-        "training_code_sha256": training_code_sha256(),
-        "frames": frames,
-        "seed": seed,
-        "kitchens": list(kitchens),
-    }
-
-
-def run_directory(runs_dir: Path | str, record: dict) -> Path:
-    digest = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:10]
-    return Path(runs_dir) / "train" / f"{record['method']}-{digest}"
-
-
-def train_method(
-    method: str,
-    options: dict[str, str] | None = None,
-    frames: int = 10_000_000,
-    seed: int = 0,
-    kitchens=(),
-    runs_dir: Path | str = "runs",
-    progress: Callable[[str], None] = print,
-) -> Path:
-    """Train METHOD (or resume its run, or find it finished) and return the run directory."""
-    plugin = load_plugin(method)
-    hook = getattr(plugin.module, "train", None)
-    if not callable(hook):
-        raise TrainError(f"{method} does not train: {plugin.source} defines no train(config, run)")
-    if frames < 1:
-        raise TrainError(f"frames must be positive, not {frames}")
-    config = plugin.config(options or {})
-    kitchens = training_kitchens(kitchens)
-    record = run_record(plugin, config, frames, seed, kitchens)
-    directory = run_directory(runs_dir, record)
-    if (directory / "finished.json").exists():
-        progress(f"{directory} is a finished run of {frames:,} frames; nothing to do")
-        return directory
-    # one trainer per run directory: a second one started on it at once is refused (a killed one's
-    # claim is stale and taken over by the resume)
-    try:
-        with claims.held(directory / "trainer.claim", f"run {directory}"):
-            return _train_in(
-                directory, hook, config, record, Run(directory, method, frames, seed, kitchens, progress)
-            )
-    except claims.ClaimError as e:
-        raise TrainError(str(e)) from e
-
-
-def _train_in(directory: Path, hook, config, record: dict, run: Run) -> Path:
-    if (directory / "finished.json").exists():  # finished by the process that held the claim before us
-        run.progress(f"{directory} is a finished run of {run.frames:,} frames; nothing to do")
-        return directory
-    config_path = directory / "config.json"
-    if config_path.exists():
-        try:
-            old = json.loads(config_path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise TrainError(f"{config_path} is unreadable ({e}); delete {directory} to start over") from e
-        old_record = {k: v for k, v in old.items() if k != "git_revision"}
-        if old_record != record:
-            differ = sorted(k for k in set(record) | set(old_record) if record.get(k) != old_record.get(k))
-            raise TrainError(
-                f"{directory} holds a run with another config (differs in {', '.join(differ)}); "
-                "refusing to resume it: delete it or use another --runs folder"
-            )
-    else:
-        atomic_write(config_path, json.dumps({**record, "git_revision": git_revision()}, indent=2) + "\n")
-    hook(config, run)
-    return directory
-
-
-def n_step_returns(rewards: torch.Tensor, dones: torch.Tensor, bootstrap: torch.Tensor, gamma: float):
-    """(T, B) rewards and done flags (the episode ended at that step), (B,) value of the state after
-    the last step: R_t = r_t + gamma * R_{t+1} * (1 - done_t), R_T = bootstrap."""
-    returns = torch.empty_like(rewards)
-    running = bootstrap
-    for t in range(rewards.shape[0] - 1, -1, -1):
-        running = rewards[t] + gamma * running * (1.0 - dones[t])
-        returns[t] = running
-    return returns
-
-
-def actor_critic_loss(
-    log_prob: torch.Tensor,
-    value: torch.Tensor,
-    entropy: torch.Tensor,
-    returns: torch.Tensor,
-    value_weight: float,
-    entropy_weight: float,
-    weights: torch.Tensor | None = None,
-    mask: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, dict]:
-    """A3C's loss over any batch of (taken action's log-prob, value, entropy, return): policy gradient
-    with advantage R - V (weighted per sample by `weights`: TSE's importance weights), value loss
-    0.5 (R - V)^2 with weight alpha, minus the entropy bonus; `mask` drops padding."""
-    mask = torch.ones_like(value) if mask is None else mask
-    weights = torch.ones_like(value) if weights is None else weights
-    n = mask.sum().clamp(min=1.0)
-    advantage = (returns - value).detach()
-    policy = -(weights * log_prob * advantage * mask).sum() / n
-    value_loss = 0.5 * (((returns - value) ** 2) * mask).sum() / n
-    bonus = (entropy * mask).sum() / n
-    loss = policy + value_weight * value_loss - entropy_weight * bonus
-    return loss, {"policy": policy.item(), "value": value_loss.item(), "entropy": bonus.item()}
-
-
-def optimal_actions(
-    space: StateSpace, targets: np.ndarray, states: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """On-policy IL's labels: for each agent the set of BFS-optimal actions (B, 10) — every action
-    one step nearer the goal, or Stop on it — and whether the goal is reachable at all (B,). All of
-    them, not one: BFS ties are common (a strafe or a turn), and a single tie-broken label asks the
-    network to learn the tie-break."""
-    now = space.dist[targets, states]
-    return optimal_action_mask(now, space.dist[targets[:, None], space.next_state[states]]), now >= 0
-
-
-def optimal_action_loss(log_p: torch.Tensor, optimal: np.ndarray, known: np.ndarray) -> torch.Tensor:
-    """-log of the probability the policy gives to the optimal actions (B,), zero where unknown."""
-    mask = torch.from_numpy(optimal)
-    total = torch.logsumexp(log_p.masked_fill(~mask, float("-inf")), -1)
-    return -torch.where(torch.from_numpy(known), total, torch.zeros_like(total))
-
-
-def imitation_loss(logits: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Cross-entropy of the expert's actions, padding masked out."""
-    ce = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), actions.reshape(-1), reduction="none")
-    return (ce * mask.reshape(-1)).sum() / mask.sum().clamp(min=1.0)
-
-
-# ------------------------------------------------------------------------------------------------
-# 4. IL data and TSE relabelling
-
-
-@dataclass
-class Sequences:
-    """Padded sequences for a separate pass of the model: states[i, t] where actions[i, t] is taken,
-    toward the goal state goal[i] (whose view is the target image)."""
-
-    states: np.ndarray  # (N, L) global states
-    actions: np.ndarray  # (N, L)
-    mask: np.ndarray  # (N, L) bool, False on padding
-    goal: np.ndarray  # (N,) global state: the target image's state
-    rewards: np.ndarray | None = None  # (N, L)
-    behaviour: np.ndarray | None = None  # (N, L) behaviour policy's probability (NaN: not taken by it)
-
-
-def pad(seqs: list[tuple[list[int], list[int]]], goals, extra=None) -> Sequences:
-    n, length = len(seqs), max(len(a) for _, a in seqs)
-    states = np.zeros((n, length), np.int64)
-    actions = np.zeros((n, length), np.int64)
-    mask = np.zeros((n, length), bool)
-    for i, (s, a) in enumerate(seqs):
-        states[i, : len(s)], actions[i, : len(a)], mask[i, : len(a)] = s, a, True
-        states[i, len(s) :] = s[-1]
-    return Sequences(states, actions, mask, np.asarray(goals, np.int64), **(extra or {}))
-
-
-def expert_sequences(space: StateSpace, expert: str, walk: int, rng: np.random.Generator) -> Sequences:
-    """One expert trajectory per target of the space: the paper's walk-back from the destination (a
-    walk of 10..`walk` steps, its length drawn by rng: "to a random start"; reversed), or the
-    BFS-optimal path from a training start drawn by rng."""
-    seqs = []
-    for r in range(len(space.target_ids)):
-        k = space.target_kitchen[r]
-        off, kt = space.offsets[k], space.tasks[k]
-        dest = int(space.destination[r])
-        if expert == "walk_back":
-            steps = int(rng.integers(min(MIN_START_DISTANCE, walk), walk + 1))
-            start, actions = walk_back_trajectory(kt.graph, dest - off, steps)
-            start += off
-        else:
-            lo, hi = space.start_ptr[r], space.start_ptr[r + 1]
-            start = int(space.start_flat[lo + rng.integers(hi - lo)])
-            actions = shortest_trajectory(space.next_state, space.dist[r], start)
-        states = [int(start)]
-        for a in actions[:-1]:
-            states.append(int(space.next_state[states[-1], a]))
-        if not space.goal[r, states[-1]]:
-            raise TrainError(f"the {expert} expert of {space.target_ids[r]} does not end at its destination")
-        seqs.append((states, actions))
-    return pad(seqs, space.destination)
-
-
-def assign_targets(space: StateSpace, kitchen: np.ndarray) -> np.ndarray:
-    """One training target per agent, as the paper's threads: the j-th agent of a kitchen trains its
-    kitchen's target j mod (targets of the kitchen). Every target needs an agent."""
-    kitchen = np.asarray(kitchen, np.int64)
-    assigned = np.empty(len(kitchen), np.int64)
-    for k in range(len(space.kitchens)):
-        rows = space.kitchen_rows[space.kitchen_ptr[k] : space.kitchen_ptr[k + 1]]
-        agents = np.flatnonzero(kitchen == k)
-        if len(agents) < len(rows):
-            raise TrainError(
-                f"{space.kitchens[k]} has {len(rows)} training targets but {len(agents)} agents: with "
-                f"fixed_targets each target needs an agent (set agents_per_kitchen to at least {len(rows)}, "
-                "or fixed_targets=false)"
-            )
-        assigned[agents] = rows[np.arange(len(agents)) % len(rows)]
-    return assigned
-
-
-def subtarget_types(space: StateSpace) -> np.ndarray:
-    """(T, 125) per training target, the object types whose sight makes a state one of TSE's
-    sub-targets for an agent training that target: novel objects (`tse_types`) and the kitchen's other
-    training targets ("the targets trained by other threads"), never its own target's type."""
-    n_types = space.objects.shape[1]
-    own = np.zeros((len(space.kitchens), n_types), bool)
-    own[space.target_kitchen, space.target_type] = True
-    eligible = space.tse_types[space.target_kitchen] | own[space.target_kitchen]
-    eligible[np.arange(len(space.target_ids)), space.target_type] = False
-    return eligible
-
-
-class SubtargetSampler:
-    """TSE's sub-targets, sampled as the paper: per agent and episode, `k` of the steps that reached a
-    state showing a sub-target object (`subtarget_types`), drawn uniformly at random among all such
-    steps of the episode (reservoir sampling, Algorithm R, so the whole episode need not be kept).
-    Each kept step is stored with the window of at most `window` steps of its episode that led to it;
-    `finish` hands an ended episode's samples over for relabelling. Its arrays are its state."""
-
-    FIELDS = ("ring_state", "ring_action", "ring_prob", "episode_tick", "count", "slot_state",
-              "slot_action", "slot_prob", "slot_length", "slot_goal")  # fmt: skip
-
-    def __init__(self, n_agents: int, k: int, window: int):
-        self.k, self.window = k, window
-        shape = (n_agents, window)
-        # the last `window` steps of every agent (column tick % window): state before, action, its prob
-        self.ring_state = np.zeros(shape, np.int64)
-        self.ring_action = np.zeros(shape, np.int64)
-        self.ring_prob = np.zeros(shape, np.float64)
-        self.episode_tick = np.zeros(n_agents, np.int64)  # the tick of the episode's first step
-        self.count = np.zeros(n_agents, np.int64)  # sub-target steps met in this episode
-        self.slot_state = np.zeros((n_agents, k, window), np.int64)  # chronological, right-aligned
-        self.slot_action = np.zeros((n_agents, k, window), np.int64)
-        self.slot_prob = np.zeros((n_agents, k, window), np.float64)
-        self.slot_length = np.zeros((n_agents, k), np.int64)
-        self.slot_goal = np.zeros((n_agents, k), np.int64)
-
-    def step(self, tick, before, actions, probs, after, candidate, rng: np.random.Generator) -> None:
-        """Record one step of every agent; `candidate` marks the agents whose step reached a state
-        showing a sub-target object (a Stop reaches nothing new: the caller leaves Stops out)."""
-        column = tick % self.window
-        self.ring_state[:, column], self.ring_action[:, column], self.ring_prob[:, column] = (
-            before,
-            actions,
-            probs,
-        )
-        idx = np.flatnonzero(candidate)
-        if not len(idx) or not self.k:
-            return
-        self.count[idx] += 1
-        m = self.count[idx]
-        # Algorithm R: the m-th candidate fills slot m-1 while there is one, else replaces a random
-        # slot with probability k/m
-        slot = np.where(m <= self.k, m - 1, rng.integers(0, m))
-        keep = slot < self.k
-        idx, slot = idx[keep], slot[keep]
-        if not len(idx):
-            return
-        length = np.minimum(self.window, tick - self.episode_tick[idx] + 1)
-        columns = (tick - self.window + 1 + np.arange(self.window)) % self.window
-        self.slot_state[idx, slot] = self.ring_state[idx][:, columns]
-        self.slot_action[idx, slot] = self.ring_action[idx][:, columns]
-        self.slot_prob[idx, slot] = self.ring_prob[idx][:, columns]
-        self.slot_length[idx, slot] = length
-        self.slot_goal[idx, slot] = after[idx]
-
-    def finish(self, idx: np.ndarray, next_tick: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, int]]:
-        """The sampled windows (states, actions, behaviour probs, sub-target state) of the agents
-        whose episodes ended; their next episodes start at `next_tick` with nothing sampled."""
-        out = []
-        for i in idx:
-            for j in range(min(int(self.count[i]), self.k)):
-                n = int(self.slot_length[i, j])
-                out.append(
-                    (
-                        self.slot_state[i, j, -n:].copy(),
-                        self.slot_action[i, j, -n:].copy(),
-                        self.slot_prob[i, j, -n:].copy(),
-                        int(self.slot_goal[i, j]),
-                    )
-                )
-        self.count[idx] = 0
-        self.episode_tick[idx] = next_tick
-        return out
-
-    def state_dict(self) -> dict:
-        return arrays_state(self, self.FIELDS)
-
-    def load_state_dict(self, d: dict) -> None:
-        load_arrays(self, self.FIELDS, d, "TSE's")
-
-
-def relabel(states, actions, behaviour, goal: int) -> tuple[list[int], list[int], np.ndarray, np.ndarray]:
-    """HER-style: a walk states[0] -a0-> states[1] ... -a_{m-1}-> states[m] == goal becomes the task
-    "reach goal and Stop": the same actions plus a final Stop at goal, rewards recomputed with the
-    env's reward function (goal = that one state), the Stop succeeding (+10). Returns states (m + 1),
-    actions (m + 1), rewards (m + 1) and the behaviour probabilities (NaN for the added Stop)."""
-    states, actions = [int(s) for s in states], [int(a) for a in actions]
-    if states[-1] != goal or len(states) != len(actions) + 1:
-        raise ValueError("relabel needs states[0..m] ending at the goal and m actions")
-    after = np.array(states[1:] + [goal])
-    on_goal = after == goal
-    reached_before = np.concatenate([[states[0] == goal], np.logical_or.accumulate(on_goal)[:-1]])
-    success = np.zeros(len(after), bool)
-    success[-1] = True
-    rewards = reward(on_goal & ~reached_before, success)
-    return states, actions + [STOP], rewards, np.append(np.asarray(behaviour, np.float64), np.nan)
-
-
-# ------------------------------------------------------------------------------------------------
-# 5. The trainer
+# 1. The model around the network, and 2. the trainer
 
 
 def _detach(hidden):
@@ -1067,7 +574,7 @@ def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, see
 
 
 # ------------------------------------------------------------------------------------------------
-# 6. The loop: logs, checkpoints, resumption
+# 3. The loop: logs, checkpoints, resumption
 
 
 def save_checkpoint(path: Path, state: dict) -> None:

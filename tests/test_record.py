@@ -276,7 +276,7 @@ def _eval_run(directory, episodes: list[dict]):
 
 
 def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
-    from kgnavbench.train import train_method
+    from kgnavbench.runs import train_method
 
     seen = [_episode("seen_seen", 9, False, "FloorPlan1")]
     outcomes = ((4, False), (2, True), (6, False), (0, False))  # (collisions, last view shows target)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from kgnavbench import models, train, vecenv
+from kgnavbench import losses, models, runs, train, vecenv
 from kgnavbench.cli import main
 from kgnavbench.kitchens import object_types
 from kgnavbench.tasks import STOP
@@ -40,13 +40,13 @@ TINY = {
 }
 
 
-def tiny_options(**changes) -> train.TrainOptions:
-    values = {k: type(getattr(train.TrainOptions, k))(v) for k, v in TINY.items()}
-    return train.TrainOptions(**{**values, **changes})
+def tiny_options(**changes) -> runs.TrainOptions:
+    values = {k: type(getattr(runs.TrainOptions, k))(v) for k, v in TINY.items()}
+    return runs.TrainOptions(**{**values, **changes})
 
 
-def tiny_run(tmp_path: Path, frames: int = 400, seed: int = 0) -> train.Run:
-    return train.Run(tmp_path, "test", frames, seed, ("FloorPlan1",), progress=lambda line: None)
+def tiny_run(tmp_path: Path, frames: int = 400, seed: int = 0) -> runs.Run:
+    return runs.Run(tmp_path, "test", frames, seed, ("FloorPlan1",), progress=lambda line: None)
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +64,7 @@ def test_curriculum_reach_grows_with_frames_then_ends(tmp_path, floorplan1_tasks
     trainer.frames = 1000
     assert trainer.reach() is None  # over: the training starts as usual
     assert train.Trainer(tiny_run(tmp_path), tiny_options(), models.ModelConfig(), True).reach() is None
-    with pytest.raises(train.TrainError, match="start_curriculum"):
+    with pytest.raises(runs.TrainError, match="start_curriculum"):
         tiny_options(start_curriculum=1.5)
 
 
@@ -101,7 +101,7 @@ def test_n_step_returns_by_hand():
     dones = torch.tensor([[0.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
     bootstrap = torch.tensor([4.0, 5.0])
     g = 0.5
-    returns = train.n_step_returns(rewards, dones, bootstrap, g)
+    returns = losses.n_step_returns(rewards, dones, bootstrap, g)
     # agent 0: 3 + .5*4 = 5; 2 + .5*5 = 4.5; 1 + .5*4.5 = 3.25
     # agent 1: the episode ends at t=1: R_1 = 10, R_0 = -0.01 + .5*10 = 4.99; t=2 starts anew: -0.01 + .5*5
     assert returns[:, 0].tolist() == pytest.approx([3.25, 4.5, 5.0])
@@ -113,7 +113,7 @@ def test_actor_critic_loss_by_hand():
     value = torch.tensor([1.0, 2.0], requires_grad=True)
     entropy = torch.tensor([1.0, 2.0])
     returns = torch.tensor([3.0, 1.0])
-    loss, parts = train.actor_critic_loss(log_prob, value, entropy, returns, 0.5, 0.01)
+    loss, parts = losses.actor_critic_loss(log_prob, value, entropy, returns, 0.5, 0.01)
     # advantages 2 and -1; policy -(ln .5 * 2 + ln .25 * -1) / 2; value .5 (4 + 1) / 2; entropy 1.5
     policy = -(np.log(0.5) * 2 + np.log(0.25) * -1) / 2
     assert parts["policy"] == pytest.approx(policy, rel=1e-6)
@@ -121,7 +121,7 @@ def test_actor_critic_loss_by_hand():
     assert parts["entropy"] == pytest.approx(1.5)
     assert float(loss.detach()) == pytest.approx(policy + 0.5 * 1.25 - 0.01 * 1.5, rel=1e-6)
     # masked: only the first sample counts
-    _, parts = train.actor_critic_loss(
+    _, parts = losses.actor_critic_loss(
         log_prob, value, entropy, returns, 0.5, 0.01, mask=torch.tensor([1.0, 0.0])
     )
     assert parts["value"] == pytest.approx(2.0)
@@ -129,14 +129,14 @@ def test_actor_critic_loss_by_hand():
 
 def test_relabel_a_hand_made_trajectory():
     # a walk 7 -> 8 -> 3 -> 8 -> 5 (goal 5), actions 0, 1, 2, 3
-    states, actions, rewards, mu = train.relabel([7, 8, 3, 8, 5], [0, 1, 2, 3], [0.5, 0.4, 0.3, 0.2], 5)
+    states, actions, rewards, mu = losses.relabel([7, 8, 3, 8, 5], [0, 1, 2, 3], [0.5, 0.4, 0.3, 0.2], 5)
     assert states == [7, 8, 3, 8, 5]
     assert actions == [0, 1, 2, 3, STOP]  # the added Stop at the sub-target
     # -0.01 a step; the first arrival at 5 (after action 3) +0.01; the Stop at 5 succeeds, +10
     assert rewards.tolist() == pytest.approx([-0.01, -0.01, -0.01, 0.0, 9.99])
     assert mu[:4].tolist() == [0.5, 0.4, 0.3, 0.2] and np.isnan(mu[4])
     with pytest.raises(ValueError):
-        train.relabel([7, 8], [0], [0.5], 5)  # does not end at the goal
+        losses.relabel([7, 8], [0], [0.5], 5)  # does not end at the goal
 
 
 def test_subtarget_sampler_keeps_a_uniform_sample_of_k_per_episode():
@@ -144,7 +144,7 @@ def test_subtarget_sampler_keeps_a_uniform_sample_of_k_per_episode():
     k/m; the kept windows are the steps of the episode that led to the candidate, in order."""
     k, m, episodes = 2, 8, 4000
     rng = np.random.default_rng(0)
-    sampler = train.SubtargetSampler(1, k, window=3)
+    sampler = losses.SubtargetSampler(1, k, window=3)
     kept = np.zeros(m, np.int64)
     tick = 0
     for _ in range(episodes):
@@ -168,19 +168,19 @@ def test_subtarget_sampler_keeps_a_uniform_sample_of_k_per_episode():
 
 
 def test_subtarget_sampler_keeps_every_candidate_below_k_and_checkpoints():
-    sampler = train.SubtargetSampler(2, 5, window=4)
+    sampler = losses.SubtargetSampler(2, 5, window=4)
     rng = np.random.default_rng(0)
     for tick, candidate in enumerate([[False, True], [True, False], [False, True]]):
         sampler.step(tick, np.array([tick, 10 + tick]), np.array([1, 2]), np.array([0.1, 0.2]),
                      np.array([tick + 1, 11 + tick]), np.array(candidate), rng)  # fmt: skip
-    copy = train.SubtargetSampler(2, 5, window=4)
+    copy = losses.SubtargetSampler(2, 5, window=4)
     copy.load_state_dict(sampler.state_dict())
     for s in (sampler, copy):
         windows = s.finish(np.array([0, 1]), 3)
         assert [w[3] for w in windows] == [2, 11, 13]  # agent 0's candidate, then agent 1's two
         assert windows[2][0].tolist() == [10, 11, 12]
     with pytest.raises(ValueError, match="shape"):
-        train.SubtargetSampler(3, 5, window=4).load_state_dict(sampler.state_dict())
+        losses.SubtargetSampler(3, 5, window=4).load_state_dict(sampler.state_dict())
 
 
 def test_subtargets_exclude_the_unseen_targets_unless_asked(floorplan1_tasks):
@@ -194,7 +194,7 @@ def test_subtargets_exclude_the_unseen_targets_unless_asked(floorplan1_tasks):
     novel = set(np.flatnonzero(default.tse_types[0]).tolist())
     assert novel and not novel & unseen and not novel & seen
     assert set(np.flatnonzero(allowed.tse_types[0]).tolist()) & (unseen - seen)
-    eligible = train.subtarget_types(default)
+    eligible = losses.subtarget_types(default)
     for row, own in enumerate(default.target_type):
         assert not eligible[row, own]
         others = set(default.target_type.tolist()) - {int(own)}
@@ -217,7 +217,7 @@ def test_each_agent_keeps_one_target(tmp_path, floorplan1_tasks):
         episodes += trainer.stats["episodes"] - before
         assert (trainer.nav.target == first).all()
     assert episodes >= 14  # every agent began a new episode at least once (cap 6)
-    with pytest.raises(train.TrainError, match="7 training targets but 4 agents"):
+    with pytest.raises(runs.TrainError, match="7 training targets but 4 agents"):
         train.Trainer(tiny_run(tmp_path), tiny_options(agents_per_kitchen=4), models.ModelConfig(), True)
     drawn = train.Trainer(
         tiny_run(tmp_path),
@@ -309,7 +309,7 @@ def test_dagger_labels_are_every_optimal_action(space):
     targets = rng.integers(0, len(space.target_ids), 400)
     states = rng.integers(0, space.n_states, 400)
     states[:7], targets[:7] = space.destination[:7], np.arange(7)  # on the goal: Stop only
-    optimal, known = train.optimal_actions(space, targets, states)
+    optimal, known = losses.optimal_actions(space, targets, states)
     for t, s, row, ok in zip(targets, states, optimal, known):
         d = space.dist[t, s]
         assert ok == (d >= 0)
@@ -321,14 +321,14 @@ def test_dagger_labels_are_every_optimal_action(space):
                 assert row[a] == (space.dist[t, space.next_state[s, a]] == d - 1)
     # the loss is -log of the optimal actions' total probability: uniform policy, k optimal -> -log(k/10)
     log_p = torch.full((400, 10), float(np.log(0.1)))
-    loss = train.optimal_action_loss(log_p, optimal, known)
+    loss = losses.optimal_action_loss(log_p, optimal, known)
     expected = np.where(known, -np.log(np.maximum(optimal.sum(1), 1) / 10), 0.0)
     assert loss.numpy() == pytest.approx(expected, abs=1e-5)
 
 
 def test_expert_sequences_reach_every_destination(space):
     for expert in ("walk_back", "shortest"):
-        seq = train.expert_sequences(space, expert, 20, np.random.default_rng(0))
+        seq = losses.expert_sequences(space, expert, 20, np.random.default_rng(0))
         assert len(seq.goal) == len(space.target_ids)  # one trajectory per target
         for i in range(len(seq.goal)):
             n = int(seq.mask[i].sum())
@@ -341,7 +341,7 @@ def test_walk_back_experts_walk_a_random_10_to_il_walk_steps(space):
     destination, plus Stop), its length drawn from the run's generator."""
     lengths = []
     for seed in (0, 1):
-        seq = train.expert_sequences(space, "walk_back", 25, np.random.default_rng(seed))
+        seq = losses.expert_sequences(space, "walk_back", 25, np.random.default_rng(seed))
         opened = space.tasks[0].graph.opened[space.destination] >= 0
         lengths.append(seq.mask.sum(1) - 1 - opened)
     assert all(((n >= 10) & (n <= 25)).all() for n in lengths)
@@ -527,22 +527,22 @@ def test_training_code_hash_ignores_comments_and_docstrings_only(tmp_path):
     """A run's directory hash covers the training code: a changed line of code is another run (a
     finished run is not reused after the trainer changed), a comment, a docstring or formatting is not."""
     package = Path(train.__file__).parent
-    for name in train.TRAINING_CODE:
+    for name in runs.TRAINING_CODE:
         (tmp_path / name).write_text((package / name).read_text())
-    original = train.training_code_sha256(tmp_path)
-    assert original == train.training_code_sha256()
+    original = runs.training_code_sha256(tmp_path)
+    assert original == runs.training_code_sha256()
     text = (tmp_path / "train.py").read_text()
     cosmetic = text.replace('    """What decides a run: its hash names the run directory."""\n', "")
     cosmetic = cosmetic.replace("VALIDATION_CAP = 1000", "VALIDATION_CAP  =  1000  # reformatted")
     assert cosmetic != text
     (tmp_path / "train.py").write_text(cosmetic + "\n# a comment\n")
-    assert train.training_code_sha256(tmp_path) == original
+    assert runs.training_code_sha256(tmp_path) == original
     (tmp_path / "train.py").write_text(text.replace("VALIDATION_CAP = 1000", "VALIDATION_CAP = 999"))
-    assert train.training_code_sha256(tmp_path) != original
+    assert runs.training_code_sha256(tmp_path) != original
     (tmp_path / "train.py").write_text(text)
     tasks_text = (tmp_path / "tasks.py").read_text()
     (tmp_path / "tasks.py").write_text(tasks_text + "\nEXTRA = 1\n")
-    assert train.training_code_sha256(tmp_path) != original
+    assert runs.training_code_sha256(tmp_path) != original
 
 
 def test_eval_checkpoint_chooses_best_or_last(capsys, tmp_path, floorplan1_tasks):
@@ -586,5 +586,5 @@ def test_episode_cap_truncates_training_episodes(tmp_path, floorplan1_tasks):
     # every agent is at most 3 actions into its current episode, and its first ended by the cap or success
     assert (trainer.nav.steps <= 3).all()
     assert trainer.stats["episodes"] >= trainer.nav.n
-    with pytest.raises(train.TrainError, match="episode_cap"):
+    with pytest.raises(runs.TrainError, match="episode_cap"):
         tiny_options(episode_cap=0)

@@ -1,0 +1,276 @@
+"""Stage 10 — runs: a learned method's options and its run directory.
+
+`TrainOptions` holds every option a learned method shares (a plugin's `Config` extends it; `--set
+key=value`). `train_method` resolves a plugin's config into a run directory `runs/train/<method>-<hash>/`
+(a hash of the config, the plugin's source, the training code, frames, seed and kitchens), writes
+`config.json` once with the git revision, refuses a directory that holds another config, lets one
+trainer at a time in (`trainer.claim`), and calls the plugin's `train(config, run)` hook, which for the
+shipped methods is `kgnavbench.train.learn`.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from . import claims
+from .env import SUCCESS_RULES, TRAINING_MAX_STEPS
+from .files import atomic_write, git_revision
+from .kitchens import KITCHEN_NAMES, check_name
+from .plugins import load_plugin
+from .tasks import load_task_file
+
+EXPERTS = ("walk_back", "shortest", "dagger")
+
+
+class TrainError(ValueError):
+    """Bad training input or state: a bad option, a run directory holding another config, a corrupt
+    checkpoint. Reported as one line."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Options and runs
+
+
+@dataclass
+class TrainOptions:
+    """Options every learned method shares (`--set key=value`). A plugin's Config extends this."""
+
+    success_rule: str = "destination"  # the paper's: Stop at the destination; "visible": SAVN's
+    # Training episodes treat a wrong Stop as a no-op (evaluation ends the episode). Ending them from
+    # the start, stopping at once (-0.01) beats every walk that does not reach the destination, and a
+    # policy that has never succeeded learns just that (measured: SR 0 after 750k frames in
+    # FloorPlan1). `stop_ends_from=N` ends them from frame N on, a curriculum; measured in FloorPlan1
+    # with N = 1M, the training SR fell from 95% to under 1% within 750k frames of the switch. With
+    # start_curriculum (below) the agents succeed from the first updates, and N = 0 works.
+    stop_ends_from: int | None = None
+    # ... and costs this much more than a step (the paper's rewards otherwise): without it the agent
+    # learns that a wrong Stop costs no more than a move, Stops often, and evaluation punishes that
+    wrong_stop_penalty: float = 0.0
+    # actions per training episode (the task's 5000); shorter episodes mean more of them per frame
+    episode_cap: int = TRAINING_MAX_STEPS
+    # a curriculum on start distance over this fraction of the run's frames: training episodes start
+    # as near the destination as a start can be (no receptacle open, pitch 0), then ever farther (a
+    # distance drawn uniformly from 0 to a reach that grows linearly to CURRICULUM_REACH actions; the
+    # nearest start below it where none lies at it), then from the training starts as usual. Without
+    # imitation the agents otherwise meet too few successes to learn from in a short run: a
+    # destination is one state of thousands (measured, 20 kitchens, 2M frames, lstm_a3c with
+    # stop_ends_from=0 and episode_cap=200: seen/seen SR 0 without, 8.6 / 7.6% with 1.0). 0 = off
+    start_curriculum: float = 0.0
+    agents_per_kitchen: int = 64  # agents per training kitchen, all stepped at once
+    # each agent keeps one training target (agent j of a kitchen: its target j mod the kitchen's
+    # targets), as the paper's "140 threads, each thread learns for a different target"; false: every
+    # episode draws a target of the agent's kitchen
+    fixed_targets: bool = True
+    n_steps: int = 20  # rollout length: n-step returns
+    lr: float = 7e-4  # Adam
+    gamma: float = 0.99
+    value_weight: float = 0.5  # alpha: weight of the value loss
+    entropy: float = 0.01  # weight of the entropy bonus
+    max_grad_norm: float = 10.0
+    # bfloat16 autocast (CPU). Off by default: on a CPU without native bf16 (no AVX512-BF16 or AMX;
+    # torch.ops.mkldnn._is_mkldnn_bf16_supported() is False on the 2-core development machine) autocast's
+    # bf16 products run in ATen's reference kernels (measured there, kg_attention il+tse, 140 agents,
+    # 2 threads, under load from another process: 421 frames/s with bf16, 4,878 without)
+    bf16: bool = False
+    hidden: int = 256  # siamese / fusion width
+    lstm: int = 256
+    # imitation learning: cross-entropy on expert trajectories
+    il: bool = False
+    # "walk_back": the paper's expert, "only one expert trajectory for each training target": from the
+    # destination, MoveBack, else MoveLeft, else RotateRight, for a walk of random length, reversed;
+    # "shortest": one BFS-optimal path per target from a training start; "dagger": the BFS-optimal
+    # actions of every state the agents visit (DAgger with a privileged shortest-path teacher, not the
+    # paper's IL: it learns far more, e.g. 91% seen/seen SR against the paper's 8%)
+    il_expert: str = "walk_back"
+    il_walk: int = 25  # the walk back is 10..il_walk steps long (drawn per target), as the training starts
+    il_frames: int = 2_000_000  # IL is mixed into the loss until this many frames ("online")
+    il_batch: int = 32  # expert trajectories per update
+    il_weight: float = 1.0
+    # target skill extension: relabelled sub-trajectories of the agents' own episodes
+    tse: bool = False
+    tse_subtargets: int = 5  # per episode, sampled at random among the states that show a novel object
+    # the seen kitchens' unseen targets may be sub-targets (the paper's "TSE (targets)"): this trains on
+    # the seen-kitchens/unseen-targets column's test targets, so it is off by default ("TSE (seen targets)")
+    tse_unseen_targets: bool = False
+    tse_window: int = 40  # steps before the sub-target that are relabelled
+    tse_batch: int = 64  # sub-trajectories per update
+    # measured in FloorPlan1 (lstm_a3c il=true tse=true, 3M frames): at 1.0 the relabelled "Stop
+    # here, +10" episodes outweighed the rest and the agents learned to Stop anywhere (evaluation SR 0)
+    tse_weight: float = 0.1
+    # truncated importance weights min(1, pi/mu) on the relabelled steps. Without them every action of a
+    # relabel (mostly ending in +10) is pushed up whatever the current policy thinks of it, and the
+    # policy collapses onto its own habits. Measured, 20 kitchens, 80 agents, 2M frames, seen/seen SR
+    # static / actionable without -> with: +TSE (with start_curriculum) 0.0 / 0.0 -> 9.9 / 6.8,
+    # +IL+TSE 21.0 / 17.8 -> 62.3 / 62.7, +KG+Attention 73.5 / 77.1 -> 43.2 / 31.4 (one seed each)
+    tse_importance: bool = True
+    # a wrong Stop in a sub-target's window is an episode of the relabelled task too, one that failed:
+    # "Stop here, short of the sub-target" (-0.01, no +10) trains beside the successful relabel. Without
+    # these the relabels only ever reward Stop, and since training's wrong Stop is a no-op the agents
+    # learned to Stop everywhere (measured, 20 kitchens, 2M frames: lstm_a3c tse=true ended its
+    # evaluation episodes after ~6 actions, SR 0)
+    tse_failures: bool = True
+    # logs, checkpoints, validation
+    log_every: int = 200_000  # frames between metrics rows (and checkpoints)
+    val_every: int = 1_000_000  # frames between validations (and at the end)
+    val_kitchens: int = 5  # the first N validation kitchens
+    val_episodes: int = 5  # the first N fixed episodes per target
+    threads: int = 2
+    # end to end from pixels: the encoder CNN (from the committed weights) trains with the policy on
+    # the 84x84 views instead of reading cached features (the GPU path; slow on a CPU)
+    pixels: bool = False
+
+    def __post_init__(self) -> None:
+        self.check()  # a bad option fails when the config is made, before a run directory exists
+
+    def check(self) -> None:
+        if self.success_rule not in SUCCESS_RULES:
+            raise TrainError(f"success_rule must be one of {SUCCESS_RULES}, not {self.success_rule!r}")
+        if self.il_expert not in EXPERTS:
+            raise TrainError(f"il_expert must be one of {EXPERTS}, not {self.il_expert!r}")
+        positive = (
+            "episode_cap agents_per_kitchen n_steps hidden lstm il_batch tse_window tse_batch log_every "
+            "val_every val_kitchens val_episodes threads il_walk"
+        )
+        for name in positive.split():
+            if getattr(self, name) < 1:
+                raise TrainError(f"{name} must be at least 1, not {getattr(self, name)}")
+        if not (0 < self.gamma <= 1 and self.lr > 0 and self.max_grad_norm > 0):
+            raise TrainError("need 0 < gamma <= 1, lr > 0 and max_grad_norm > 0")
+        if min(self.tse_subtargets, self.il_frames, self.stop_ends_from or 0) < 0:
+            raise TrainError("tse_subtargets, il_frames and stop_ends_from must not be negative")
+        if not 0 <= self.start_curriculum <= 1:
+            raise TrainError(
+                f"start_curriculum is a fraction of the run, 0 to 1, not {self.start_curriculum}"
+            )
+
+
+@dataclass(frozen=True)
+class Run:
+    """Where and how long a plugin's `train` hook trains."""
+
+    directory: Path
+    method: str
+    frames: int
+    seed: int
+    kitchens: tuple[str, ...]  # training kitchens (their seen targets only)
+    progress: Callable[[str], None] = print
+
+
+def training_kitchens(kitchens=()) -> tuple[str, ...]:
+    """The training kitchens to train on: all of the split, or the given ones (each must be one)."""
+    train = load_task_file()["splits"]["train"]
+    if not kitchens:
+        return tuple(sorted(train, key=KITCHEN_NAMES.index))
+    for k in kitchens:
+        check_name(k)
+        if k not in train:
+            raise TrainError(f"{k} is not a training kitchen (training kitchens: {', '.join(train)})")
+    return tuple(dict.fromkeys(kitchens))
+
+
+# the library code that decides a run's numbers besides the plugin: the training starts and the state
+# graphs' semantics, the env's rewards, the models and this trainer (kitchens, world and render reach a
+# run through the state-graph cache, which is keyed by their own fingerprint)
+TRAINING_CODE = (
+    "tasks.py", "encoder.py", "env.py", "vecenv.py", "runs.py", "losses.py", "models.py", "train.py",
+)  # fmt: skip
+
+
+def training_code_sha256(package: Path = Path(__file__).parent) -> str:
+    """A hash of the training code's syntax trees without docstrings, so that a finished run is not
+    reused after a change to how runs train, while comments, docstrings and formatting do not count."""
+    digest = hashlib.sha256()
+    for name in TRAINING_CODE:
+        tree = ast.parse((package / name).read_text(), filename=name)
+        for node in ast.walk(tree):
+            body = getattr(node, "body", None)
+            if (
+                isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                and body
+                and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)
+            ):
+                node.body = body[1:] or [ast.Pass()]
+        digest.update(f"{name}\0{ast.dump(tree)}\0".encode())
+    return digest.hexdigest()
+
+
+def run_record(plugin, config, frames: int, seed: int, kitchens: tuple[str, ...]) -> dict:
+    """What decides a run: its hash names the run directory."""
+    return {
+        "method": plugin.name,
+        "options": json.loads(json.dumps(asdict(config))),
+        "plugin_source_sha256": hashlib.sha256(plugin.source_bytes()).hexdigest(),
+        "training_code_sha256": training_code_sha256(),
+        "frames": frames,
+        "seed": seed,
+        "kitchens": list(kitchens),
+    }
+
+
+def run_directory(runs_dir: Path | str, record: dict) -> Path:
+    digest = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:10]
+    return Path(runs_dir) / "train" / f"{record['method']}-{digest}"
+
+
+def train_method(
+    method: str,
+    options: dict[str, str] | None = None,
+    frames: int = 10_000_000,
+    seed: int = 0,
+    kitchens=(),
+    runs_dir: Path | str = "runs",
+    progress: Callable[[str], None] = print,
+) -> Path:
+    """Train METHOD (or resume its run, or find it finished) and return the run directory."""
+    plugin = load_plugin(method)
+    hook = getattr(plugin.module, "train", None)
+    if not callable(hook):
+        raise TrainError(f"{method} does not train: {plugin.source} defines no train(config, run)")
+    if frames < 1:
+        raise TrainError(f"frames must be positive, not {frames}")
+    config = plugin.config(options or {})
+    kitchens = training_kitchens(kitchens)
+    record = run_record(plugin, config, frames, seed, kitchens)
+    directory = run_directory(runs_dir, record)
+    if (directory / "finished.json").exists():
+        progress(f"{directory} is a finished run of {frames:,} frames; nothing to do")
+        return directory
+    # one trainer per run directory: a second one started on it at once is refused (a killed one's
+    # claim is stale and taken over by the resume)
+    try:
+        with claims.held(directory / "trainer.claim", f"run {directory}"):
+            return _train_in(
+                directory, hook, config, record, Run(directory, method, frames, seed, kitchens, progress)
+            )
+    except claims.ClaimError as e:
+        raise TrainError(str(e)) from e
+
+
+def _train_in(directory: Path, hook, config, record: dict, run: Run) -> Path:
+    if (directory / "finished.json").exists():  # finished by the process that held the claim before us
+        run.progress(f"{directory} is a finished run of {run.frames:,} frames; nothing to do")
+        return directory
+    config_path = directory / "config.json"
+    if config_path.exists():
+        try:
+            old = json.loads(config_path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise TrainError(f"{config_path} is unreadable ({e}); delete {directory} to start over") from e
+        old_record = {k: v for k, v in old.items() if k != "git_revision"}
+        if old_record != record:
+            differ = sorted(k for k in set(record) | set(old_record) if record.get(k) != old_record.get(k))
+            raise TrainError(
+                f"{directory} holds a run with another config (differs in {', '.join(differ)}); "
+                "refusing to resume it: delete it or use another --runs folder"
+            )
+    else:
+        atomic_write(config_path, json.dumps({**record, "git_revision": git_revision()}, indent=2) + "\n")
+    hook(config, run)
+    return directory
