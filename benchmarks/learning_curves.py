@@ -24,7 +24,7 @@ from pathlib import Path
 from kgnavbench.cli import _frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
 from kgnavbench.evaluate import EvalConfig, evaluate
 from kgnavbench.runs import train_method
-from kgnavbench.table import load_spec
+from kgnavbench.table_spec import load_spec
 
 ROWS = [
     (row.name, row.method, row.options)

@@ -404,7 +404,7 @@ def cmd_figures(args: argparse.Namespace) -> int:
     from .figures import FigureError, figures_of_table
     from .record import RecordError
     from .runs import TrainError
-    from .table import TableError
+    from .table_spec import TableError
 
     try:
         paths = figures_of_table(args.preset, args.runs, args.out, args.spec, progress=print)
@@ -453,17 +453,8 @@ def cmd_encoder(args: argparse.Namespace) -> int:
 def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
     from .runs import TrainError
-    from .table import (
-        SPEC_FILE,
-        TableError,
-        job_commands,
-        load_spec,
-        run_job,
-        run_table,
-        run_worker,
-        to_markdown,
-        write_table,
-    )
+    from .table import job_commands, run_job, run_table, run_worker, to_markdown, write_table
+    from .table_spec import SPEC_FILE, TableError, load_spec
 
     def say(line: str) -> None:
         print(line, flush=True)

@@ -1,4 +1,4 @@
-"""Stage 17 — figures: the paper's figures from Table I's runs, as PNG drawn with OpenCV.
+"""Stage 18 — figures: the paper's figures from Table I's runs, as PNG drawn with OpenCV.
 
 `bar_line_figure` (bars with a line on a second axis), `scatter_figure` (labelled points, e.g. a
 t-SNE), `curves_figure` (training curves); `tsne` is exact t-SNE in torch. `figures` draws the
@@ -641,9 +641,9 @@ def figures_of_table(
 ) -> list[Path]:
     """The figures of a Table I preset's runs (run_table: finished runs are only reloaded, missing
     ones are trained and evaluated first), from each row's first seed."""
-    from . import table  # lazily: the table stage imports the trainer
+    from . import table, table_spec  # lazily: the table stage imports the trainer
 
-    spec = table.load_spec(spec_path) if spec_path else table.load_spec()
+    spec = table_spec.load_spec(spec_path) if spec_path else table_spec.load_spec()
     result = table.run_table(spec, preset, runs_dir, progress)
     rows = [(r.row.name, r.train_runs[0] or None, r.eval_runs[0]) for r in result.rows]
     return figures(rows, out_dir, progress=progress)

@@ -347,9 +347,9 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
 def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     from types import SimpleNamespace
 
-    from kgnavbench import table
+    from kgnavbench import table, table_spec
 
-    spec = table.load_spec()
+    spec = table_spec.load_spec()
     runs = {}
     for name in ("walk", "ours"):
         runs[name] = _eval_run(tmp_path / name, [_episode("unseen_kitchens", 2, name == "ours")])

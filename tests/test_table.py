@@ -18,18 +18,10 @@ from kgnavbench import train
 from kgnavbench.cli import main
 from kgnavbench.evaluate import EpisodeResult
 from kgnavbench.table import (
-    CELL_KEYS,
-    CELLS,
-    SPEC_FILE,
-    Comparison,
     EpisodeValue,
-    Preset,
     RowResult,
-    TableError,
     TableResult,
     cell_episodes,
-    load_spec,
-    parse_spec,
     table_jobs,
     time_left,
     to_ablation_csv,
@@ -37,6 +29,16 @@ from kgnavbench.table import (
     to_latex,
     to_markdown,
     write_table,
+)
+from kgnavbench.table_spec import (
+    CELL_KEYS,
+    CELLS,
+    SPEC_FILE,
+    Comparison,
+    Preset,
+    TableError,
+    load_spec,
+    parse_spec,
 )
 
 PAPER_ROWS = ["Random walk", "IL", "LSTM A3C", "FF A3C", "+IL", "+TSE", "+IL+TSE", "+KG", "+KG+Attention"]

@@ -1,0 +1,286 @@
+"""Stage 15 — table_spec: the table spec (`tables/table1.toml`), read and checked.
+
+The spec names the protocol (success rule, Stop, episode caps, checkpoint selection), the presets
+(frames per row, episodes per target, seeds, kitchens, training options), the rows (a plugin and its
+options each, with the paper's numbers for the paper's rows) and the comparisons the paper draws
+between rows. `load_spec` / `parse_spec` turn it into a `TableSpec`; anything wrong with it is a
+TableError naming the file and the field. `CELLS` names Table I's five cells.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .env import SUCCESS_RULES
+from .evaluate import SEEN_CAP, UNSEEN_CAP
+from .kitchens import KITCHEN_NAMES
+from .plugins import available
+from .tasks import EPISODES_PER_TARGET
+
+SPEC_FILE = Path(__file__).resolve().parent.parent / "tables" / "table1.toml"
+CHECKPOINT_RULES = ("best_val_sr",)
+# Table I's five cells (column, kind), in the paper's order. The sixth pair of evaluate's columns and
+# kinds, actionable targets in seen kitchens that are unseen, never has an episode: every actionable
+# target of a training kitchen is a seen one.
+CELLS = (
+    ("seen_seen", "static"),
+    ("seen_unseen", "static"),
+    ("unseen_kitchens", "static"),
+    ("seen_seen", "actionable"),
+    ("unseen_kitchens", "actionable"),
+)
+CELL_KEYS = tuple(f"{column}/{kind}" for column, kind in CELLS)  # "column/kind", as the spec's `paper`
+CELL_TITLES = {
+    "seen_seen/static": "static seen/seen",
+    "seen_unseen/static": "static seen/unseen",
+    "unseen_kitchens/static": "static unseen kitchens",
+    "seen_seen/actionable": "actionable seen/seen",
+    "unseen_kitchens/actionable": "actionable unseen kitchens",
+}
+METRICS = ("SPL", "SR")  # in the paper's order; a `paper` pair is [SPL, SR]
+PERCENT = 100.0  # episode values are kept in percent: every mean and interval is then in percent
+
+
+class TableError(ValueError):
+    """A bad table spec (the message names the file and the field) or a failed table run."""
+
+
+# ------------------------------------------------------------------------------------------------
+# The spec
+
+
+@dataclass(frozen=True)
+class Protocol:
+    success_rule: str
+    stop_ends: bool
+    seen_cap: int
+    unseen_cap: int
+    checkpoint: str
+
+
+@dataclass(frozen=True)
+class Preset:
+    name: str
+    description: str
+    frames: int  # training frames per row and seed
+    episodes: int  # fixed episodes per target, of 100
+    seeds: int
+    train_kitchens: tuple[str, ...]  # empty: all training kitchens
+    eval_kitchens: tuple[str, ...]  # empty: Table I's kitchens (train + test)
+    options: dict[str, str]  # training options for every learned row (`set`)
+    rows: tuple[str, ...] = ()  # the rows this preset runs, by name; empty: every row of the spec
+
+    @property
+    def threads(self) -> int:
+        """torch's threads in every job (the `threads` training option; 0: not set, torch's own)."""
+        return int(self.options.get("threads", "0"))
+
+
+@dataclass(frozen=True)
+class Row:
+    name: str
+    method: str
+    options: dict[str, str]
+    unseen_kitchens: bool = True  # False: the method has no unseen-kitchens row (FF A3C)
+    paper: dict[str, tuple[float, float]] = field(default_factory=dict)  # "column/kind" -> (SPL, SR)
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A comparison the paper draws: `other` (a row with a component added) should beat `base`."""
+
+    base: str
+    other: str
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    path: Path
+    protocol: Protocol
+    presets: dict[str, Preset]
+    rows: tuple[Row, ...]
+    comparisons: tuple[Comparison, ...] = ()
+
+
+def _field(where: str, table: dict, key: str, kind, default=None, required=True):
+    """table[key] checked against kind; a TableError naming `where.key` otherwise."""
+    if key not in table:
+        if required:
+            raise TableError(f"{where}.{key} is missing")
+        return default
+    value = table[key]
+    kinds = kind if isinstance(kind, tuple) else (kind,)
+    if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
+        names = " or ".join(k.__name__ for k in kinds)
+        raise TableError(f"{where}.{key} = {value!r} must be {names}")
+    return value
+
+
+def _unknown(where: str, table: dict, known: set[str]) -> None:
+    extra = sorted(set(table) - known)
+    if extra:
+        raise TableError(
+            f"{where} has unknown field(s) {', '.join(extra)} (known: {', '.join(sorted(known))})"
+        )
+
+
+def _options(where: str, value: dict) -> dict[str, str]:
+    """Option tables as typed on the command line: every value a string, a number or a bool."""
+    out = {}
+    for k, v in value.items():
+        if isinstance(v, bool):
+            out[k] = "true" if v else "false"
+        elif isinstance(v, (str, int, float)):
+            out[k] = str(v)
+        else:
+            raise TableError(f"{where}.{k} = {v!r} must be a string, number or bool")
+    return out
+
+
+def _kitchens(where: str, names: list) -> tuple[str, ...]:
+    for k in names:
+        if k not in KITCHEN_NAMES:
+            raise TableError(f"{where}: unknown kitchen {k!r}")
+    if len(set(names)) != len(names):
+        raise TableError(f"{where}: a kitchen is named twice")
+    return tuple(names)
+
+
+def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
+    """The spec from TOML text; every problem is a TableError naming the file and the field."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise TableError(f"{path}: not valid TOML ({e})") from e
+    _unknown(str(path), raw, {"protocol", "presets", "rows", "comparisons"})
+    where = f"{path}: protocol"
+    p = _field(str(path), raw, "protocol", dict)
+    _unknown(where, p, {"success_rule", "stop_ends", "seen_cap", "unseen_cap", "checkpoint"})
+    protocol = Protocol(
+        success_rule=_field(where, p, "success_rule", str),
+        stop_ends=_field(where, p, "stop_ends", bool),
+        seen_cap=_field(where, p, "seen_cap", int),
+        unseen_cap=_field(where, p, "unseen_cap", int),
+        checkpoint=_field(where, p, "checkpoint", str),
+    )
+    if protocol.success_rule not in SUCCESS_RULES:
+        raise TableError(f"{where}.success_rule = {protocol.success_rule!r}: choose one of {SUCCESS_RULES}")
+    if (protocol.seen_cap, protocol.unseen_cap) != (SEEN_CAP, UNSEEN_CAP):
+        raise TableError(
+            f"{where}: seen_cap/unseen_cap = {protocol.seen_cap}/{protocol.unseen_cap}, but the evaluation "
+            f"protocol's caps are {SEEN_CAP}/{UNSEEN_CAP}"
+        )
+    if protocol.checkpoint not in CHECKPOINT_RULES:
+        raise TableError(f"{where}.checkpoint = {protocol.checkpoint!r}: choose one of {CHECKPOINT_RULES}")
+
+    presets = {}
+    for name, t in _field(str(path), raw, "presets", dict).items():
+        where = f"{path}: presets.{name}"
+        if not isinstance(t, dict):
+            raise TableError(f"{where} must be a table")
+        _unknown(
+            where,
+            t,
+            {"description", "frames", "episodes", "seeds", "train_kitchens", "eval_kitchens", "set", "rows"},
+        )
+        preset = Preset(
+            name=name,
+            description=_field(where, t, "description", str, "", required=False),
+            frames=_field(where, t, "frames", int),
+            episodes=_field(where, t, "episodes", int),
+            seeds=_field(where, t, "seeds", int, 1, required=False),
+            train_kitchens=_kitchens(
+                f"{where}.train_kitchens", _field(where, t, "train_kitchens", list, [], False)
+            ),
+            eval_kitchens=_kitchens(
+                f"{where}.eval_kitchens", _field(where, t, "eval_kitchens", list, [], False)
+            ),
+            options=_options(f"{where}.set", _field(where, t, "set", dict, {}, required=False)),
+            rows=tuple(_field(where, t, "rows", list, [], required=False)),
+        )
+        if preset.frames < 1:
+            raise TableError(f"{where}.frames = {preset.frames} must be at least 1")
+        if not 1 <= preset.episodes <= EPISODES_PER_TARGET:
+            raise TableError(f"{where}.episodes = {preset.episodes} must be 1..{EPISODES_PER_TARGET}")
+        if not 1 <= preset.seeds <= 100:
+            raise TableError(f"{where}.seeds = {preset.seeds} must be 1..100")
+        presets[name] = preset
+    if not presets:
+        raise TableError(f"{path}: presets has none")
+
+    rows = []
+    methods = set(available())
+    for i, t in enumerate(_field(str(path), raw, "rows", list)):
+        where = f"{path}: rows[{i}]"
+        if not isinstance(t, dict):
+            raise TableError(f"{where} must be a table")
+        _unknown(where, t, {"name", "method", "options", "unseen_kitchens", "paper"})
+        method = _field(where, t, "method", str)
+        if method not in methods:
+            raise TableError(
+                f"{where}.method = {method!r} is not a plugin (available: {', '.join(sorted(methods))})"
+            )
+        paper = {}
+        for cell, pair in _field(where, t, "paper", dict, {}, required=False).items():
+            ok = cell in CELL_KEYS and isinstance(pair, list) and len(pair) == 2
+            if not ok or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pair):
+                raise TableError(
+                    f"{where}.paper.{cell!r} = {pair!r} must be CELL = [SPL, SR], a CELL one of Table I's "
+                    f"{', '.join(CELL_KEYS)}"
+                )
+            paper[cell] = (float(pair[0]), float(pair[1]))
+        rows.append(
+            Row(
+                name=_field(where, t, "name", str),
+                method=method,
+                options=_options(f"{where}.options", _field(where, t, "options", dict, {}, required=False)),
+                unseen_kitchens=_field(where, t, "unseen_kitchens", bool, True, required=False),
+                paper=paper,
+            )
+        )
+    if not rows:
+        raise TableError(f"{path}: rows has none")
+    names = [r.name for r in rows]
+    if len(set(names)) != len(names):
+        raise TableError(f"{path}: rows: a row name is used twice")
+    for preset in presets.values():
+        unknown = [n for n in preset.rows if n not in names]
+        if unknown or len(set(preset.rows)) != len(preset.rows):
+            raise TableError(
+                f"{path}: presets.{preset.name}.rows = {list(preset.rows)!r}: "
+                + (f"{unknown[0]!r} is not a row name" if unknown else "a row is named twice")
+            )
+    comparisons = _comparisons(path, _field(str(path), raw, "comparisons", list, [], required=False), names)
+    return TableSpec(path, protocol, presets, tuple(rows), comparisons)
+
+
+def _comparisons(path: Path, tables: list, row_names: list[str]) -> tuple[Comparison, ...]:
+    """`[[comparisons]]`: each {base, other}, two different rows of the spec, no pair twice."""
+    out: list[Comparison] = []
+    for i, t in enumerate(tables):
+        where = f"{path}: comparisons[{i}]"
+        if not isinstance(t, dict):
+            raise TableError(f"{where} must be a table with base and other")
+        _unknown(where, t, {"base", "other"})
+        comparison = Comparison(base=_field(where, t, "base", str), other=_field(where, t, "other", str))
+        for key in ("base", "other"):
+            name = getattr(comparison, key)
+            if name not in row_names:
+                raise TableError(f"{where}.{key} = {name!r} is not a row name (rows: {', '.join(row_names)})")
+        if comparison.base == comparison.other:
+            raise TableError(f"{where}: base and other are the same row {comparison.base!r}")
+        if comparison in out:
+            raise TableError(f"{where}: {comparison.other!r} against {comparison.base!r} is there twice")
+        out.append(comparison)
+    return tuple(out)
+
+
+def load_spec(path: Path | str = SPEC_FILE) -> TableSpec:
+    try:
+        text = Path(path).read_text()
+    except OSError as e:
+        raise TableError(f"table spec {path}: {e.strerror or e}") from e
+    return parse_spec(text, path)
