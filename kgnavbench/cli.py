@@ -396,7 +396,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         except RecordError as e:
             raise UsageError(str(e)) from e
         print(f"recorded {done['rows']} rows of training curves to {args.record}")
-    print(directory)  # the last line: the run directory, for `kgnavbench eval --run`
+    from .distributed import from_env
+
+    if from_env().main:  # (torchrun: one line, from rank 0)
+        print(directory)  # the last line: the run directory, for `kgnavbench eval --run`
     return 0
 
 

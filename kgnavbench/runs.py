@@ -17,7 +17,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from . import claims
+from . import claims, distributed
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS
 from .files import atomic_write, git_revision
 from .kitchens import KITCHEN_NAMES, check_name
@@ -211,6 +211,7 @@ def run_record(plugin, config, frames: int, seed: int, kitchens: tuple[str, ...]
         "frames": frames,
         "seed": seed,
         "kitchens": list(kitchens),
+        "world_size": distributed.from_env().world,  # torchrun's ranks: another number is another run
     }
 
 
@@ -239,8 +240,14 @@ def train_method(
     kitchens = training_kitchens(kitchens)
     record = run_record(plugin, config, frames, seed, kitchens)
     directory = run_directory(runs_dir, record)
+    main = distributed.from_env().main
+    if not main:  # torchrun's other ranks say nothing
+        progress = lambda line: None  # noqa: E731
     if (directory / "finished.json").exists():
         progress(f"{directory} is a finished run of {frames:,} frames; nothing to do")
+        return directory
+    if not main:  # torchrun's other ranks: rank 0 checks, claims and writes
+        hook(config, Run(directory, method, frames, seed, kitchens, progress))
         return directory
     # one trainer per run directory: a second one started on it at once is refused (a killed one's
     # claim is stale and taken over by the resume)

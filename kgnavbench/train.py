@@ -33,7 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import encoder, models
+from . import distributed, encoder, models
 from .env import reward
 from .files import atomic_write, first_line
 from .kitchens import KITCHEN_NAMES
@@ -188,8 +188,15 @@ class Model:
 class Trainer:
     """A2C over all training kitchens at once, with optional IL and TSE; its whole state checkpoints."""
 
-    def __init__(self, run: Run, options: TrainOptions, model_config: models.ModelConfig, rl: bool):
-        self.run, self.opts, self.rl = run, options, rl
+    def __init__(
+        self,
+        run: Run,
+        options: TrainOptions,
+        model_config: models.ModelConfig,
+        rl: bool,
+        ranks: distributed.Ranks = distributed.SINGLE,
+    ):
+        self.run, self.opts, self.rl, self.ranks = run, options, rl, ranks
         self.kitchens = list(run.kitchens)
         self.model_config = dataclasses.replace(model_config, n_scenes=len(self.kitchens))
         self.ff = self.model_config.arch == "ff"
@@ -206,22 +213,30 @@ class Trainer:
             net.feature_std.copy_(stats["std"])
         self.model = Model(net, self.model_config, models.CoVisibility(), options.bf16)
         self.optimizer = torch.optim.Adam(net.parameters(), lr=options.lr)
-        self.rng = np.random.default_rng(run.seed)
-        self.generator = torch.Generator().manual_seed(run.seed)
+        # every rank starts from the same weights (above); its agents draw from generators of their own
+        # (rank 0's are a single process's)
+        seed = run.seed if ranks.rank == 0 else run.seed + 1_000_003 * ranks.rank
+        self.rng = np.random.default_rng(seed)
+        self.generator = torch.Generator().manual_seed(seed)
         # training draws nothing from Python's `random`, but a checkpoint saves its state: seeded, two
         # identical runs write identical checkpoints (and a plugin that uses it stays reproducible)
-        random.seed(run.seed)
+        random.seed(seed)
         self.frames = self.updates = 0
         self.best_val_sr = -1.0
         self.stats = self._empty_stats()
         self.val_space: StateSpace | None = None
-        n_agents = options.agents_per_kitchen * len(self.kitchens)
+        self.total_agents = options.agents_per_kitchen * len(self.kitchens)
         kitchen = np.repeat(np.arange(len(self.kitchens)), options.agents_per_kitchen)
+        assigned = assign_targets(self.space, kitchen) if options.fixed_targets else None
+        mine = np.arange(self.total_agents)[ranks.rank :: ranks.world]  # this rank's share of the agents
+        if not len(mine):
+            raise TrainError(f"{self.total_agents} agents cannot be shared by {ranks.world} ranks")
+        n_agents = len(mine)
         self.nav = Navigators(
             self.space,
-            kitchen,
+            kitchen[mine],
             stop_ends=options.stop_ends_from == 0,
-            assigned=assign_targets(self.space, kitchen) if options.fixed_targets else None,
+            assigned=None if assigned is None else assigned[mine],
         )
         self.cap = options.episode_cap
         self.nav.draw(np.arange(n_agents), self.rng, self.cap, self.reach())
@@ -274,8 +289,8 @@ class Trainer:
             self.stats["il"] += il_loss.item()
             self.stats["losses_il"] += 1
             if not self.rl:
-                self.frames += n_frames
-                self.stats["frames"] += n_frames
+                self.stats["frames"] += n_frames  # this rank's (metrics sum the ranks')
+                self.frames += int(distributed.sum_tensor(torch.tensor(n_frames), self.ranks))
         if self.rl and self.opts.tse:
             tse_loss = self.skill_extension(graph)
             if tse_loss is not None:
@@ -284,9 +299,11 @@ class Trainer:
                 self.stats["losses_tse"] += 1
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        distributed.average_gradients(self.model.net.parameters(), self.ranks)
         torch.nn.utils.clip_grad_norm_(self.model.net.parameters(), self.opts.max_grad_norm)
         self.optimizer.step()
         self.updates += 1
+        distributed.check_replicas(self.model.net.parameters(), self.ranks, self.updates)
 
     def rollout(self, graph, imitate: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
         """n steps of every agent, then the learning pass over them; returns the A2C loss of the
@@ -344,9 +361,12 @@ class Trainer:
             _, bootstrap, _, _ = self.model(space, nav.state, goals, hidden, graph, scene, self.history)
         self.hidden = hidden
         if self.model.uses_graph:
-            self.model.covis.add(space.objects[reached.reshape(-1)])
-        self.frames += n * b
-        self.stats["frames"] += n * b
+            covis, before = self.model.covis, self.model.covis.counts.clone()
+            covis.add(space.objects[reached.reshape(-1)])
+            if self.ranks.world > 1:  # every rank's frames count, on every rank
+                covis.counts = before + distributed.sum_tensor(covis.counts - before, self.ranks)
+        self.frames += n * self.total_agents  # every rank's agents stepped n times
+        self.stats["frames"] += n * b  # this rank's (metrics sum the ranks')
         self.stats["reward"] += float(rewards.sum())
         # the learning pass: the same n steps again, with autograd
         keep = torch.from_numpy(1.0 - dones)
@@ -487,7 +507,7 @@ class Trainer:
         return run_episodes(self.model, sp, targets, starts, VALIDATION_CAP, self.run.seed)
 
     # -- checkpoints -----------------------------------------------------------------------------
-    def state_dict(self) -> dict:
+    def state_dict(self, weights: bool = True) -> dict:
         return {
             "format": CHECKPOINT_FORMAT,
             "method": self.run.method,
@@ -500,8 +520,8 @@ class Trainer:
             "tick": self.tick,
             "best_val_sr": float(self.best_val_sr),
             "stats": {k: float(v) for k, v in self.stats.items()},
-            "model": self.model.net.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
+            "model": self.model.net.state_dict() if weights else None,
+            "optimizer": self.optimizer.state_dict() if weights else None,
             "covis": self.model.covis.state_dict(),
             "rng": {
                 "numpy": json.dumps(self.rng.bit_generator.state),  # plain data: weights_only loads it
@@ -515,7 +535,18 @@ class Trainer:
             "tse": self.tse.state_dict(),
         }
 
+    RANK_STATE = ("rng", "agents", "hidden", "history", "tse")  # what differs between the ranks
+
+    def rank_state(self) -> dict:
+        """This rank's part of the checkpoint: its agents, their LSTM states and its generators."""
+        return {k: v for k, v in self.state_dict(weights=False).items() if k in self.RANK_STATE}
+
     def load_state_dict(self, ck: dict) -> None:
+        if self.ranks.world > 1:  # this rank's own agents and generators
+            ranks = ck.get("ranks")
+            if not isinstance(ranks, list) or len(ranks) != self.ranks.world:
+                raise ValueError(f"the checkpoint holds no state for {self.ranks.world} ranks")
+            ck = {**ck, **ranks[self.ranks.rank]}
         self.model.net.load_state_dict(ck["model"])
         self.optimizer.load_state_dict(ck["optimizer"])
         self.model.covis.load_state_dict(ck["covis"])
@@ -631,8 +662,9 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
     """Train (or resume) a run: A2C (rl=True) with IL and TSE as the options say, or IL alone."""
     options.check()
     torch.set_num_threads(options.threads)
-    progress = run.progress
-    trainer = Trainer(run, options, model_config, rl)
+    ranks = distributed.start()
+    progress = run.progress if ranks.main else (lambda line: None)
+    trainer = Trainer(run, options, model_config, rl, ranks)
     last, best = run.directory / "last.pt", run.directory / "best.pt"
     metrics_path = run.directory / "metrics.csv"
     if last.exists():
@@ -644,16 +676,17 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
         except (KeyError, ValueError, RuntimeError, TypeError) as e:
             raise TrainError(f"checkpoint {last} does not fit this run ({type(e).__name__}: {e})") from e
         progress(f"resumed {run.directory} from {last.name} at {trainer.frames:,} frames")
-    rows = _read_metrics(metrics_path, trainer.frames)
-    atomic_write(metrics_path, _csv_text(rows))
+    if ranks.main:
+        atomic_write(metrics_path, _csv_text(_read_metrics(metrics_path, trainer.frames)))
     every = options.log_every
     next_log = (trainer.frames // every + 1) * every
     next_val = (trainer.frames // options.val_every + 1) * options.val_every
-    agents = trainer.nav.n if rl or trainer.dagger else 0
+    agents = trainer.total_agents if rl or trainer.dagger else 0
+    on_ranks = f" on {ranks.world} ranks" if ranks.world > 1 else ""
     progress(
         f"training {run.method} on {len(trainer.kitchens)} kitchens "
         f"({len(trainer.space.target_ids)} targets, "
-        f"{agents} agents) to {run.frames:,} frames; run {run.directory}"
+        f"{agents} agents{on_ranks}) to {run.frames:,} frames; run {run.directory}"
     )
     t0, f0 = time.perf_counter(), trainer.frames
     while trainer.frames < run.frames:
@@ -663,6 +696,11 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
             continue
         next_log = (trainer.frames // every + 1) * every
         val_sr = val_spl = float("nan")
+        trainer.stats = distributed.sum_numbers(trainer.stats, ranks)  # every rank's episodes and losses
+        ranks_state = distributed.gather(trainer.rank_state(), ranks) if ranks.world > 1 else None
+        if not ranks.main:  # rank 0 alone validates and writes
+            trainer.stats = trainer._empty_stats()
+            continue
         if trainer.frames >= next_val or done:
             next_val = (trainer.frames // options.val_every + 1) * options.val_every
             tv = time.perf_counter()
@@ -678,7 +716,7 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
         with open(metrics_path, "a") as f:
             csv.DictWriter(f, METRICS).writerow(row)
         trainer.stats = trainer._empty_stats()
-        save_checkpoint(last, trainer.state_dict())
+        save_checkpoint(last, {**trainer.state_dict(), **({"ranks": ranks_state} if ranks.world > 1 else {})})
         progress(
             f"{trainer.frames:>12,} frames  {row['frames_per_s']:>8} frames/s  "
             f"reward/frame {row['mean_reward']}  "
@@ -686,6 +724,9 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
             f"TSE {row['tse_loss']}"
         )
     seconds = time.perf_counter() - t0
+    distributed.finish(ranks)
+    if not ranks.main:
+        return run.directory
     atomic_write(
         run.directory / "finished.json",
         json.dumps({"frames": trainer.frames, "best_val_sr": trainer.best_val_sr, "seconds": seconds}) + "\n",

@@ -1,0 +1,114 @@
+"""Data-parallel training over torchrun's ranks (a helper of the runs and train stages; no stage).
+
+    torchrun --standalone --nproc_per_node=2 -m kgnavbench train --method lstm_a3c ...
+
+Each rank steps its own share of the agents (agent i of the run's list belongs to rank i mod
+world_size) with its own generators, computes its losses, and the gradients are averaged over the
+ranks (one all-reduce of all of them) before the clipping and the optimiser step, so every rank holds
+the same weights after every update. The knowledge graph's co-visibility counts are summed over the
+ranks, so the graph is the same everywhere too. Rank 0 alone writes config.json, metrics.csv and the
+checkpoints; `last.pt` carries every rank's agents and generators, so a killed run resumes exactly
+with the number of ranks it was started with (the run's config records `world_size`, so another
+number is another run). Gloo on CPU (the backend torchrun gives a CPU job; NCCL where the tensors
+live on a GPU). With one process nothing here does anything.
+
+`KGNAVBENCH_CHECK_REPLICAS=1` makes every update compare a hash of every rank's weights (a check for
+tests and for new code: it costs one small all-gather per update).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as dist
+
+CHECK_REPLICAS = "KGNAVBENCH_CHECK_REPLICAS"
+
+
+@dataclass(frozen=True)
+class Ranks:
+    rank: int = 0
+    world: int = 1
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+SINGLE = Ranks()  # one process
+
+
+def from_env() -> Ranks:
+    """This process's rank and the world size as torchrun sets them (1 process without torchrun)."""
+    return Ranks(int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1")))
+
+
+def start() -> Ranks:
+    """Join torchrun's process group (once); a single process joins nothing."""
+    ranks = from_env()
+    if ranks.world > 1 and not dist.is_initialized():
+        dist.init_process_group("gloo")
+    return ranks
+
+
+def average_gradients(parameters, ranks: Ranks) -> None:
+    """Every parameter's gradient replaced by its mean over the ranks (a missing one counts as 0)."""
+    if ranks.world == 1:
+        return
+    params = list(parameters)
+    flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params])
+    dist.all_reduce(flat)
+    flat /= ranks.world
+    offset = 0
+    for p in params:
+        n = p.numel()
+        p.grad = flat[offset : offset + n].view_as(p).clone()
+        offset += n
+
+
+def sum_tensor(t: torch.Tensor, ranks: Ranks) -> torch.Tensor:
+    """t summed over the ranks (in place; t itself with one process)."""
+    if ranks.world > 1:
+        dist.all_reduce(t)
+    return t
+
+
+def sum_numbers(values: dict[str, float], ranks: Ranks) -> dict[str, float]:
+    """A dict of numbers summed over the ranks, key by key."""
+    if ranks.world == 1:
+        return values
+    keys = sorted(values)
+    t = sum_tensor(torch.tensor([float(values[k]) for k in keys], dtype=torch.float64), ranks)
+    return dict(zip(keys, t.tolist()))
+
+
+def gather(obj, ranks: Ranks) -> list | None:
+    """Every rank's obj, in rank order, on rank 0 (None elsewhere); [obj] with one process."""
+    if ranks.world == 1:
+        return [obj]
+    out = [None] * ranks.world if ranks.main else None
+    dist.gather_object(obj, out, dst=0)
+    return out
+
+
+def check_replicas(parameters, ranks: Ranks, update: int) -> None:
+    """With KGNAVBENCH_CHECK_REPLICAS=1: every rank's weights must be bit-identical (a RuntimeError)."""
+    if ranks.world == 1 or os.environ.get(CHECK_REPLICAS) != "1":
+        return
+    digest = hashlib.sha256()
+    for p in parameters:
+        digest.update(p.detach().contiguous().numpy().tobytes())
+    hashes = [None] * ranks.world
+    dist.all_gather_object(hashes, digest.hexdigest())
+    if len(set(hashes)) != 1:
+        raise RuntimeError(f"the ranks' weights differ after update {update}: {hashes}")
+
+
+def finish(ranks: Ranks) -> None:
+    """Leave the process group once every rank got here."""
+    if ranks.world > 1 and dist.is_initialized():
+        dist.barrier()
+        dist.destroy_process_group()
