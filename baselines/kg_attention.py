@@ -54,4 +54,4 @@ def train(config: Config, run) -> None:
 
 
 def make_policy(config: Config, spec):
-    return load_policy(spec.checkpoint, spec.seed)
+    return load_policy(spec.checkpoint, spec.seed, spec.device)

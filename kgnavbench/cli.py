@@ -9,11 +9,11 @@
     kgnavbench eval --method NAME [--success-rule visible|destination] [--stop-noop]
                     [--split table|train|val|test] [--kitchens A,B] [--episodes N] [--set KEY=VALUE]
                     [--seed S] [--runs DIR] [--run TRAIN_RUN [--checkpoint best|last]] [--json]
-                    [--record FILE.rrd] [--record-episodes N] [--record-steps N]
+                    [--record FILE.rrd] [--record-episodes N] [--record-steps N] [--device auto|cpu|cuda]
     kgnavbench train --method NAME [--set KEY=VALUE] [--frames N] [--seed S] [--kitchens A,B]
-                     [--runs DIR] [--record FILE.rrd]
+                     [--runs DIR] [--record FILE.rrd] [--device auto|cpu|cuda]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR] [--workers N]
-                     [--jobs | --job N | --worker]
+                     [--jobs | --job N | --worker] [--device auto|cpu|cuda]
     kgnavbench figures [--preset quick] [--runs DIR] [--out DIR]
     kgnavbench view FILE.rrd
     kgnavbench encoder pretrain [--epochs N] [--samples-per-epoch N] [--shift PX] [--seed S] [--out FILE]
@@ -323,6 +323,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         seed=args.seed,
         run=str(args.run) if args.run else "",
         checkpoint=args.checkpoint,
+        device=_device(args.device),
     )
     if args.checkpoint != "best" and not args.run:
         raise UsageError("--checkpoint chooses among a training run's checkpoints: give --run DIR too")
@@ -385,6 +386,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             kitchens=kitchens,
             runs_dir=args.runs,
             progress=lambda line: print(line, flush=True),
+            device=args.device,
         )
     except (TrainError, ModelError) as e:
         raise UsageError(str(e)) from e
@@ -466,17 +468,18 @@ def cmd_table(args: argparse.Namespace) -> int:
         spec = load_spec(args.spec or SPEC_FILE)
         if args.preset not in spec.presets:
             raise UsageError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
+        device = _device(args.device)
         if args.jobs:
             print("\n".join(job_commands(spec, args.preset, args.runs)))
             return 0
         if args.job is not None or args.worker:
             if args.job is not None:
-                run_job(spec, args.preset, args.job, args.runs, progress=say)
+                run_job(spec, args.preset, args.job, args.runs, progress=say, device=device)
             else:
-                run_worker(spec, args.preset, args.runs, progress=say)
+                run_worker(spec, args.preset, args.runs, progress=say, device=device)
             print(f"then `kgnavbench table --preset {args.preset} --runs {args.runs}` assembles the table")
             return 0
-        result = run_table(spec, args.preset, args.runs, progress=say, workers=args.workers)
+        result = run_table(spec, args.preset, args.runs, progress=say, workers=args.workers, device=device)
         paths = write_table(result, args.out or spec.path.parent)
     except (TableError, TrainError) as e:
         raise UsageError(str(e)) from e
@@ -498,6 +501,26 @@ def _positive(text: str) -> int:
 
 def _runs_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+
+
+def _device_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--device",
+        default="auto",
+        metavar="auto|cpu|cuda",
+        help="where torch computes (default auto: CUDA where there is a GPU, else the CPU); a run "
+        "records it, since CUDA's numbers are not the CPU's",
+    )
+
+
+def _device(name: str) -> str:
+    """--device resolved to what a run records: "cpu" or "cuda" (a UsageError where it cannot be)."""
+    from .device import DeviceError, name_of, resolve
+
+    try:
+        return name_of(resolve(name))
+    except DeviceError as e:
+        raise UsageError(str(e)) from e
 
 
 def _frames(text: str) -> int:
@@ -655,6 +678,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="end each recorded episode after N actions (default: the evaluation's cap)",
     )
+    _device_option(p)
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser(
@@ -674,6 +698,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")
     _runs_option(p)
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="record the training curves with rerun")
+    _device_option(p)
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser(
@@ -729,6 +754,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="take the next unclaimed job from the runs folder until none is left (no table); start "
         "one per machine or core that shares the runs folder, then run `table` to assemble",
     )
+    _device_option(p)
     p.set_defaults(func=cmd_table)
 
     p = sub.add_parser(

@@ -46,11 +46,12 @@ def from_env() -> Ranks:
     return Ranks(int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1")))
 
 
-def start() -> Ranks:
-    """Join torchrun's process group (once); a single process joins nothing."""
+def start(device: torch.device = torch.device("cpu")) -> Ranks:  # noqa: B008 - an immutable default
+    """Join torchrun's process group (once): gloo on the CPU, NCCL for CUDA tensors; a single process
+    joins nothing."""
     ranks = from_env()
     if ranks.world > 1 and not dist.is_initialized():
-        dist.init_process_group("gloo")
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     return ranks
 
 
@@ -100,7 +101,7 @@ def check_replicas(parameters, ranks: Ranks, update: int) -> None:
         return
     digest = hashlib.sha256()
     for p in parameters:
-        digest.update(p.detach().contiguous().numpy().tobytes())
+        digest.update(p.detach().cpu().contiguous().numpy().tobytes())
     hashes = [None] * ranks.world
     dist.all_gather_object(hashes, digest.hexdigest())
     if len(set(hashes)) != 1:

@@ -105,6 +105,7 @@ class EvalConfig:
     seed: int = 0
     run: str = ""  # a learned method's training run directory: its best-validation checkpoint is tested
     checkpoint: str = "best"  # which of the run's checkpoints: best.pt (Table I's rule) or last.pt
+    device: str = "cpu"  # where a learned policy computes: "cpu" or "cuda" (kgnavbench/device.py)
 
     def __post_init__(self) -> None:
         if self.checkpoint not in CHECKPOINTS:
@@ -231,7 +232,7 @@ def policy_spec(config: EvalConfig, seed: int, view_size: int) -> PolicySpec:
     checkpoint = (
         str(selected_checkpoint(config.run, config.method, config.checkpoint)) if config.run else None
     )
-    return PolicySpec.default(seed, view_size, checkpoint)
+    return PolicySpec.default(seed, view_size, checkpoint, config.device)
 
 
 def selected_checkpoint(run: str | Path, method: str, which: str = "best") -> Path:

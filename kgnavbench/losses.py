@@ -79,9 +79,9 @@ def optimal_actions(
 
 def optimal_action_loss(log_p: torch.Tensor, optimal: np.ndarray, known: np.ndarray) -> torch.Tensor:
     """-log of the probability the policy gives to the optimal actions (B,), zero where unknown."""
-    mask = torch.from_numpy(optimal)
+    mask = torch.from_numpy(optimal).to(log_p.device)
     total = torch.logsumexp(log_p.masked_fill(~mask, float("-inf")), -1)
-    return -torch.where(torch.from_numpy(known), total, torch.zeros_like(total))
+    return -torch.where(torch.from_numpy(known).to(log_p.device), total, torch.zeros_like(total))
 
 
 def imitation_loss(logits: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

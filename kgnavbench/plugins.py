@@ -63,10 +63,15 @@ class PolicySpec:
     object_types: tuple[str, ...] = ()
     seed: int = 0
     checkpoint: str | None = None  # a trained method's checkpoint (`kgnavbench eval --run DIR`)
+    device: str = "cpu"  # where a torch policy should compute: "cpu" or "cuda" (`--device`)
 
     @staticmethod
-    def default(seed: int = 0, view_size: int = VIEW_SIZE, checkpoint: str | None = None) -> PolicySpec:
-        return PolicySpec(view_size=view_size, object_types=object_types(), seed=seed, checkpoint=checkpoint)
+    def default(
+        seed: int = 0, view_size: int = VIEW_SIZE, checkpoint: str | None = None, device: str = "cpu"
+    ) -> PolicySpec:
+        return PolicySpec(
+            view_size=view_size, object_types=object_types(), seed=seed, checkpoint=checkpoint, device=device
+        )
 
 
 @dataclass(frozen=True)

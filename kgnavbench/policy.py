@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from . import models
+from .device import DeviceError, resolve
 from .kitchens import object_types
 from .train import Model, TrainError, _rows, load_checkpoint
 
@@ -24,18 +25,22 @@ from .train import Model, TrainError, _rows, load_checkpoint
 class LearnedPolicy:
     """reset(agent) / act(observations, infos) for evaluation (module docstring)."""
 
-    def __init__(self, checkpoint: Path | str, seed: int = 0):
+    def __init__(self, checkpoint: Path | str, seed: int = 0, device: str = "cpu"):
         ck = load_checkpoint(checkpoint)
+        try:
+            self.device = resolve(device)
+        except DeviceError as e:
+            raise TrainError(str(e)) from e
         self.config = models.ModelConfig(**ck["model_config"])
         net = models.make_model(self.config)
         try:
             net.load_state_dict(ck["model"])
         except (RuntimeError, KeyError) as e:
             raise TrainError(f"checkpoint {checkpoint} does not fit its model ({e})") from e
-        net.eval()
+        net.eval().to(self.device)
         covis = models.CoVisibility()
         covis.load_state_dict(ck["covis"])
-        self.model = Model(net, self.config, covis, ck["options"].get("bf16", False))
+        self.model = Model(net, self.config, covis, ck["options"].get("bf16", False), self.device)
         with torch.no_grad():
             self.graph = self.model.graph()
         self.training_kitchens = list(ck["kitchens"])
@@ -44,7 +49,7 @@ class LearnedPolicy:
         self.view_key, self.target_key = (
             ("view", "target") if self.config.pixels else ("features", "target_features")
         )
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = torch.Generator(self.device).manual_seed(seed)
         self.slot: dict[str, int] = {}
         self.hidden = None  # (h, c) rows per slot; None for FF
         self.frames: np.ndarray | None = None  # FF: (slots, history, *view) the last frames per slot
@@ -55,7 +60,7 @@ class LearnedPolicy:
     def reset(self, agent: str) -> None:
         if agent not in self.slot:
             self.slot[agent] = len(self.slot)
-            grown = self.model.net.initial_state(len(self.slot))
+            grown = self.model.net.initial_state(len(self.slot), self.device)
             if grown is not None and self.hidden is not None:
                 grown = tuple(torch.cat([h, g[len(h) :]]) for h, g in zip(self.hidden, grown))
             self.hidden = grown
@@ -84,20 +89,21 @@ class LearnedPolicy:
                 self.reset(a)
         slots = np.fromiter((self.slot[a] for a in agents), np.int64, len(agents))
         now = np.stack([o[self.view_key] for o in shown])
-        r_t = torch.from_numpy(np.stack([o["view_objects"] for o in shown]).astype(np.float32))
-        r_g = torch.from_numpy(np.stack([o["target_objects"] for o in shown]).astype(np.float32))
+        tensor = self.model.tensor
+        r_t = tensor(np.stack([o["view_objects"] for o in shown]).astype(np.float32))
+        r_g = tensor(np.stack([o["target_objects"] for o in shown]).astype(np.float32))
         scene, target_rows = None, None
         if self.ff:
-            view = torch.from_numpy(self._frames(agents, slots, now))
-            target = torch.from_numpy(np.stack([o[self.target_key] for o in shown]))
+            view = tensor(self._frames(agents, slots, now))
+            target = tensor(np.stack([o[self.target_key] for o in shown]))
             scene = np.array([self._scene(infos[a]["kitchen"]) for a in agents], np.int64)
         else:  # each distinct target's layers once, with the row of every agent's
             distinct, first, rows = np.unique(
                 [infos[a]["target"] for a in agents], return_index=True, return_inverse=True
             )
-            view = torch.from_numpy(now)
-            target = torch.from_numpy(np.stack([shown[i][self.target_key] for i in first]))
-            target_rows = torch.from_numpy(rows.reshape(-1))
+            view = tensor(now)
+            target = tensor(np.stack([shown[i][self.target_key] for i in first]))
+            target_rows = tensor(rows.reshape(-1))
         self.fresh.difference_update(agents)
         with torch.no_grad():
             logits, _, rows_after, extras = self.model.forward(
@@ -105,15 +111,16 @@ class LearnedPolicy:
             )
             actions = torch.multinomial(F.softmax(logits, -1), 1, generator=self.generator).squeeze(1)
         if self.hidden is not None:
+            at = self.model.tensor(slots)
             for h, r in zip(self.hidden, rows_after):
-                h[slots] = r
+                h[at] = r
         if extras["attention"] is not None:  # for recordings: `explain`
             weights, types = extras["attention"].float().topk(3, dim=1)
             self.attention = {
                 a: [(self.type_names[t], float(w)) for t, w in zip(ts.tolist(), ws.tolist()) if w > 0]
                 for a, ts, ws in zip(agents, types, weights)
             }
-        return dict(zip(agents, actions.tolist()))
+        return dict(zip(agents, actions.cpu().tolist()))
 
     def _frames(self, agents: list[str], slots: np.ndarray, now: np.ndarray) -> np.ndarray:
         """FF: each agent's last `history` frames, this one last (a new episode: this one repeated)."""
@@ -139,10 +146,10 @@ class LearnedPolicy:
         return {"attention": self.attention.get(agent, [])}
 
 
-def load_policy(checkpoint: Path | str | None, seed: int = 0) -> LearnedPolicy:
+def load_policy(checkpoint: Path | str | None, seed: int = 0, device: str = "cpu") -> LearnedPolicy:
     """The policy of a trained checkpoint (a learned plugin's make_policy)."""
     if checkpoint is None:
         raise TrainError(
             "this method needs a trained checkpoint: run `kgnavbench train`, then eval --run DIR"
         )
-    return LearnedPolicy(checkpoint, seed)
+    return LearnedPolicy(checkpoint, seed, device)

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from . import claims, distributed
+from .device import DeviceError, name_of, resolve
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS
 from .files import atomic_write, git_revision
 from .kitchens import KITCHEN_NAMES, check_name
@@ -159,6 +160,7 @@ class Run:
     seed: int
     kitchens: tuple[str, ...]  # training kitchens (their seen targets only)
     progress: Callable[[str], None] = print
+    device: str = "cpu"  # the torch device it trains on (kgnavbench/device.py)
 
 
 def training_kitchens(kitchens=()) -> tuple[str, ...]:
@@ -201,7 +203,9 @@ def training_code_sha256(package: Path = Path(__file__).parent) -> str:
     return digest.hexdigest()
 
 
-def run_record(plugin, config, frames: int, seed: int, kitchens: tuple[str, ...]) -> dict:
+def run_record(
+    plugin, config, frames: int, seed: int, kitchens: tuple[str, ...], device: str = "cpu"
+) -> dict:
     """What decides a run: its hash names the run directory."""
     return {
         "method": plugin.name,
@@ -212,6 +216,7 @@ def run_record(plugin, config, frames: int, seed: int, kitchens: tuple[str, ...]
         "seed": seed,
         "kitchens": list(kitchens),
         "world_size": distributed.from_env().world,  # torchrun's ranks: another number is another run
+        "device": device,  # "cpu" or "cuda": their numbers differ, as the threads' do
     }
 
 
@@ -228,8 +233,10 @@ def train_method(
     kitchens=(),
     runs_dir: Path | str = "runs",
     progress: Callable[[str], None] = print,
+    device: str = "auto",
 ) -> Path:
-    """Train METHOD (or resume its run, or find it finished) and return the run directory."""
+    """Train METHOD (or resume its run, or find it finished) on `device` (auto | cpu | cuda) and
+    return the run directory."""
     plugin = load_plugin(method)
     hook = getattr(plugin.module, "train", None)
     if not callable(hook):
@@ -238,7 +245,11 @@ def train_method(
         raise TrainError(f"frames must be positive, not {frames}")
     config = plugin.config(options or {})
     kitchens = training_kitchens(kitchens)
-    record = run_record(plugin, config, frames, seed, kitchens)
+    try:
+        on = resolve(device)
+    except DeviceError as e:
+        raise TrainError(str(e)) from e
+    record = run_record(plugin, config, frames, seed, kitchens, name_of(on))
     directory = run_directory(runs_dir, record)
     main = distributed.from_env().main
     if not main:  # torchrun's other ranks say nothing
@@ -247,14 +258,18 @@ def train_method(
         progress(f"{directory} is a finished run of {frames:,} frames; nothing to do")
         return directory
     if not main:  # torchrun's other ranks: rank 0 checks, claims and writes
-        hook(config, Run(directory, method, frames, seed, kitchens, progress))
+        hook(config, Run(directory, method, frames, seed, kitchens, progress, str(on)))
         return directory
     # one trainer per run directory: a second one started on it at once is refused (a killed one's
     # claim is stale and taken over by the resume)
     try:
         with claims.held(directory / "trainer.claim", f"run {directory}"):
             return _train_in(
-                directory, hook, config, record, Run(directory, method, frames, seed, kitchens, progress)
+                directory,
+                hook,
+                config,
+                record,
+                Run(directory, method, frames, seed, kitchens, progress, str(on)),
             )
     except claims.ClaimError as e:
         raise TrainError(str(e)) from e

@@ -138,15 +138,25 @@ def eval_kitchens(preset: Preset, row: Row) -> tuple[str, ...]:
     return kitchens
 
 
-def run_row(spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path, progress) -> tuple:
-    """Train (or find, or resume) one row's run for one seed, then evaluate its best checkpoint."""
+def run_row(
+    spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path, progress, device: str = "cpu"
+) -> tuple:
+    """Train (or find, or resume) one row's run for one seed on `device`, then evaluate its best
+    checkpoint."""
     trains = _trains(row)
     options = dict(row.options)
     run_dir = None
     if trains:
         options = {**preset.options, **row.options}
         run_dir = train_method(
-            row.method, options, preset.frames, seed, preset.train_kitchens, runs_dir, progress=progress
+            row.method,
+            options,
+            preset.frames,
+            seed,
+            preset.train_kitchens,
+            runs_dir,
+            progress=progress,
+            device=device,
         )
     config = EvalConfig(
         method=row.method,
@@ -158,6 +168,7 @@ def run_row(spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path
         episodes_per_target=preset.episodes,
         seed=seed,
         run=str(run_dir) if run_dir else "",
+        device=device,
     )
     return run_dir, evaluate(config, runs_dir, progress=progress)
 
@@ -194,7 +205,14 @@ class JobOutcome(NamedTuple):
 
 
 def _job(
-    spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path, progress, threads: int
+    spec: TableSpec,
+    preset: Preset,
+    row: Row,
+    seed: int,
+    runs_dir: Path,
+    progress,
+    threads: int,
+    device: str = "cpu",
 ) -> JobOutcome:
     """One row and seed, trained (or found) and evaluated: what the table keeps of it. Runs in the
     table's process or in a worker process (with `threads` torch threads: 1 where jobs run side by
@@ -204,7 +222,7 @@ def _job(
     started = time.time()
     t0 = time.perf_counter()
     try:
-        run_dir, run = run_row(spec, preset, row, seed, runs_dir, progress)
+        run_dir, run = run_row(spec, preset, row, seed, runs_dir, progress, device)
     except PluginError as e:
         raise TableError(f"row {row.name!r}: {e}") from e
     # a row found done on disk took seconds, not what a row of its kind takes: no ETA sample
@@ -256,7 +274,12 @@ def job_commands(spec: TableSpec, preset_name: str, runs_dir: Path | str) -> lis
 
 
 def run_job(
-    spec: TableSpec, preset_name: str, number: int, runs_dir: Path | str = "runs", progress=print
+    spec: TableSpec,
+    preset_name: str,
+    number: int,
+    runs_dir: Path | str = "runs",
+    progress=print,
+    device: str = "cpu",
 ) -> None:
     """Job `number` (from 1, as `job_commands` prints it): train (or find, or resume) and evaluate."""
     preset = _preset(spec, preset_name)
@@ -265,10 +288,12 @@ def run_job(
         raise TableError(f"preset {preset.name!r} has jobs 1..{len(jobs)}, not {number}")
     row, seed = jobs[number - 1]
     progress(f"== [{number}/{len(jobs)}] {row.name} (seed {seed})")
-    _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads)
+    _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads, device)
 
 
-def run_worker(spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs", progress=print) -> list[int]:
+def run_worker(
+    spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs", progress=print, device: str = "cpu"
+) -> list[int]:
     """Take the next unclaimed job of the preset, run it, mark it done, until none is left; returns
     the numbers (from 1) of the jobs this worker ran. Several workers, on this machine or on others
     that share `runs_dir`, split the jobs between them (`claims`: a job is claimed by one worker; a
@@ -282,7 +307,7 @@ def run_worker(spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs",
             continue
         try:
             progress(f"== [{n + 1}/{len(jobs)}] {row.name} (seed {seed}): claimed by pid {os.getpid()}")
-            _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads)
+            _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads, device)
         except BaseException:
             claims.release(path)
             raise
@@ -293,7 +318,12 @@ def run_worker(spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs",
 
 
 def run_table(
-    spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs", progress=print, workers: int = 1
+    spec: TableSpec,
+    preset_name: str,
+    runs_dir: Path | str = "runs",
+    progress=print,
+    workers: int = 1,
+    device: str = "cpu",
 ) -> TableResult:
     """Every row and seed (a job each), with progress and an ETA; resumable (see the module docstring).
     `workers` > 1 runs that many jobs at once in worker processes (torch on the preset's `threads`,
@@ -325,7 +355,7 @@ def run_table(
     if workers == 1:
         for n, (row, seed) in enumerate(jobs):
             progress(f"== {title(n)}{eta()}")
-            outcomes[n] = _job(spec, preset, row, seed, runs_dir, progress, threads)
+            outcomes[n] = _job(spec, preset, row, seed, runs_dir, progress, threads, device)
             if not outcomes[n].reused:
                 done.append((kinds[n], outcomes[n].seconds))
     else:
@@ -342,7 +372,8 @@ def run_table(
                 prefix = functools.partial(
                     print, f"[{n + 1}/{len(jobs)}] {row.name} (seed {seed}):", flush=True
                 )
-                pending[pool.submit(_job, spec, preset, row, seed, runs_dir, prefix, threads or 1)] = n
+                job = (spec, preset, row, seed, runs_dir, prefix, threads or 1, device)
+                pending[pool.submit(_job, *job)] = n
             for future in concurrent.futures.as_completed(pending):
                 n = pending[future]
                 outcomes[n] = future.result()

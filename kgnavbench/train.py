@@ -98,14 +98,29 @@ class Model:
     """The actor-critic with what it needs around it: features and object vectors of a state space,
     the knowledge graph, frame histories (FF) and scene ids."""
 
-    def __init__(self, net, config: models.ModelConfig, covis, bf16: bool):
-        self.net, self.config, self.covis, self.bf16 = net, config, covis, bf16
+    def __init__(self, net, config: models.ModelConfig, covis, bf16: bool, device="cpu"):
+        self.net, self.config, self.covis, self.device = net, config, covis, torch.device(device)
+        self.bf16 = bf16 or self.device.type == "cuda"  # bf16 autocast on CUDA; on the CPU as asked
         self.uses_graph = config.kg != "none" and config.kg_graph == "accumulated"
+        self._space: tuple[int, torch.Tensor, torch.Tensor] | None = None  # a space's tables on the device
+
+    def tensor(self, array) -> torch.Tensor:
+        """A NumPy array as a tensor on the model's device (the array itself on the CPU)."""
+        return torch.from_numpy(np.ascontiguousarray(array)).to(self.device)
+
+    def autocast(self):
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16)
+
+    def tables(self, space: StateSpace) -> tuple[torch.Tensor, torch.Tensor]:
+        """The space's standardized features and object vectors on the device, moved once per space."""
+        if self._space is None or self._space[0] != id(space):
+            self._space = (id(space), space.features_t.to(self.device), space.objects_t.to(self.device))
+        return self._space[1], self._space[2]
 
     def adjacency(self) -> torch.Tensor | None:
         if not self.uses_graph:
             return None
-        return torch.as_tensor(np.asarray(self.covis.adjacency()), dtype=torch.float32)
+        return torch.as_tensor(np.asarray(self.covis.adjacency()), dtype=torch.float32).to(self.device)
 
     def graph(self):
         """The knowledge graph's per-update terms (models.GraphTerms), computed once for all the steps
@@ -113,7 +128,7 @@ class Model:
         adjacency = self.adjacency()
         if adjacency is None:
             return None
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+        with self.autocast():
             return self.net.graph_terms(adjacency)
 
     def inputs(self, space: StateSpace, states, goals, history=None):
@@ -121,21 +136,21 @@ class Model:
         toward the target images of `goals` (states): view features (or views), each distinct target's
         features (or view) once with the row of every agent's (None for FF: one per agent), and the
         visible-type vectors R_t and R_g. Any leading shape (B or T x B)."""
-        s = torch.from_numpy(np.ascontiguousarray(states))
-        g = torch.from_numpy(np.ascontiguousarray(goals))
+        features, objects = self.tables(space)
+        s, g = self.tensor(states), self.tensor(goals)
         target_rows = None
         if self.config.arch == "lstm":
             distinct, rows = np.unique(goals, return_inverse=True)
-            target_rows = torch.from_numpy(rows.reshape(-1))
+            target_rows = self.tensor(rows.reshape(-1))
         else:
             distinct = goals
         if self.config.pixels:
-            view = torch.from_numpy(space.views[history if history is not None else states])
-            target = torch.from_numpy(space.views[distinct])
+            view = self.tensor(space.views[history if history is not None else states])
+            target = self.tensor(space.views[distinct])
         else:
-            view = space.features_t[torch.from_numpy(history) if history is not None else s]
-            target = space.features_t[torch.from_numpy(np.ascontiguousarray(distinct))]
-        return view, target, target_rows, space.objects_t[s], space.objects_t[g]
+            view = features[self.tensor(history) if history is not None else s]
+            target = features[self.tensor(distinct)]
+        return view, target, target_rows, objects[s], objects[g]
 
     def __call__(self, space: StateSpace, states, goals, hidden, graph, scene=None, history=None):
         """One forward pass: agents in `states` (or their frame `history` (B, H) for FF) toward the
@@ -146,7 +161,7 @@ class Model:
     def forward(self, view, target, target_rows, r_t, r_g, hidden, graph, scene=None):
         """One forward pass on the network's inputs themselves (as `inputs` gives them; the evaluation
         policy builds them from the env's observations); scene: (B,) training-kitchen indices (FF)."""
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+        with self.autocast():
             logits, value, hidden, extras = self.net(
                 view,
                 target,
@@ -154,7 +169,7 @@ class Model:
                 r_g,
                 hidden,
                 adjacency=graph,
-                scene=None if scene is None else torch.from_numpy(np.ascontiguousarray(scene)),
+                scene=None if scene is None else self.tensor(scene),
                 target_rows=target_rows,
             )
         return logits.float(), value.float(), hidden, extras
@@ -168,10 +183,10 @@ class Model:
         n, b = states.shape
         flat = history.reshape(n * b, -1) if history is not None else None
         view, target, target_rows, r_t, r_g = self.inputs(space, states.reshape(-1), goals.reshape(-1), flat)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+        with self.autocast():
             joint, _ = self.net.encode(view, target, r_t, r_g, graph, target_rows)
             if self.config.arch != "lstm":
-                scenes = torch.from_numpy(np.ascontiguousarray(np.tile(scene, n)))
+                scenes = self.tensor(np.tile(scene, n))
                 logits, values, _ = self.net.act(joint, None, scenes)
             else:
                 joint = joint.view(n, b, -1)
@@ -211,13 +226,15 @@ class Trainer:
             stats = encoder.encoder_feature_stats()
             net.feature_mean.copy_(stats["mean"])
             net.feature_std.copy_(stats["std"])
-        self.model = Model(net, self.model_config, models.CoVisibility(), options.bf16)
+        self.device = torch.device(run.device)
+        net.to(self.device)
+        self.model = Model(net, self.model_config, models.CoVisibility(), options.bf16, self.device)
         self.optimizer = torch.optim.Adam(net.parameters(), lr=options.lr)
         # every rank starts from the same weights (above); its agents draw from generators of their own
         # (rank 0's are a single process's)
         seed = run.seed if ranks.rank == 0 else run.seed + 1_000_003 * ranks.rank
         self.rng = np.random.default_rng(seed)
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = torch.Generator(self.device).manual_seed(seed)
         # training draws nothing from Python's `random`, but a checkpoint saves its state: seeded, two
         # identical runs write identical checkpoints (and a plugin that uses it stays reproducible)
         random.seed(seed)
@@ -240,7 +257,7 @@ class Trainer:
         )
         self.cap = options.episode_cap
         self.nav.draw(np.arange(n_agents), self.rng, self.cap, self.reach())
-        self.hidden = net.initial_state(n_agents)
+        self.hidden = net.initial_state(n_agents, self.device)
         self.history = np.repeat(self.nav.state[:, None], self.model_config.history, 1) if self.ff else None
         # TSE: the sub-targets sampled per episode, and the windows of the episodes that ended during
         # this rollout, relabelled by the update that follows it
@@ -270,7 +287,7 @@ class Trainer:
     def update(self) -> None:
         """One rollout of every agent (or, IL only, one expert batch) and one gradient step."""
         graph = self.model.graph()
-        loss = torch.zeros(())
+        loss = torch.zeros((), device=self.device)
         imitate = self.il and (not self.rl or self.frames < self.opts.il_frames)
         self.nav.stop_ends = self.opts.stop_ends_from is not None and self.frames >= self.opts.stop_ends_from
         if self.rl or self.dagger:
@@ -331,7 +348,7 @@ class Trainer:
                 logits, _, hidden, _ = self.model(space, nav.state, goals, hidden, graph, scene, self.history)
                 probs = F.softmax(logits, -1)
                 action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
-                a = action.numpy()
+                a = action.cpu().numpy()
                 actions[t] = a
                 before = nav.state.copy()
                 r, terminated, truncated = nav.step(a)
@@ -344,7 +361,7 @@ class Trainer:
                     candidate = (a != STOP) & (
                         space.objects[nav.state] & self.subtarget_types[nav.target]
                     ).any(1)
-                    taken = probs.gather(1, action[:, None]).squeeze(1).numpy()
+                    taken = probs.gather(1, action[:, None]).squeeze(1).cpu().numpy()
                     self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng)
                 self.tick += 1
                 finished = np.flatnonzero(done)
@@ -353,7 +370,7 @@ class Trainer:
                     self.stats["successes"] += int(nav.success[finished].sum())
                     self.stats["returns"] += float(nav.episode_return[finished].sum())
                     self._new_episodes(finished)
-                hidden = _keep(hidden, torch.from_numpy(~done).float())
+                hidden = _keep(hidden, self.model.tensor(~done).float())
                 if self.ff:
                     self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
                     self.history[finished] = nav.state[finished, None]
@@ -369,14 +386,14 @@ class Trainer:
         self.stats["frames"] += n * b  # this rank's (metrics sum the ranks')
         self.stats["reward"] += float(rewards.sum())
         # the learning pass: the same n steps again, with autograd
-        keep = torch.from_numpy(1.0 - dones)
+        keep = self.model.tensor(1.0 - dones)
         logits, values = self.model.unroll(
             space, states, space.destination[targets], start_hidden, keep, graph, scene, histories
         )
         log_p = F.log_softmax(logits, -1)
-        taken = log_p.gather(2, torch.from_numpy(actions)[..., None]).squeeze(2)
+        taken = log_p.gather(2, self.model.tensor(actions)[..., None]).squeeze(2)
         entropies = -(log_p.exp() * log_p).sum(-1)
-        returns = n_step_returns(torch.from_numpy(rewards), torch.from_numpy(dones), bootstrap, opts.gamma)
+        returns = n_step_returns(self.model.tensor(rewards), self.model.tensor(dones), bootstrap, opts.gamma)
         loss, _ = actor_critic_loss(taken, values, entropies, returns, opts.value_weight, opts.entropy)
         il = None
         if imitate:
@@ -447,20 +464,21 @@ class Trainer:
             back = np.arange(length)[:, None] - np.arange(self.model_config.history)[::-1]
             history = np.ascontiguousarray(np.transpose(seq.states[:, np.clip(back, 0, None)], (1, 0, 2)))
         scene = self.space.kitchen_of[seq.states[:, 0]] if self.ff else None
-        hidden = self.model.net.initial_state(n)
+        hidden = self.model.net.initial_state(n, self.device)
         return self.model.unroll(self.space, states, goals, hidden, None, graph, scene, history)
 
     def imitation(self, graph) -> tuple[torch.Tensor, int]:
         """Cross-entropy on il_batch expert trajectories drawn at random."""
         ex = self.experts
         n = len(ex.goal)
-        take = torch.randperm(n, generator=self.generator)[: min(self.opts.il_batch, n)].sort().values.numpy()
+        order = torch.randperm(n, generator=self.generator, device=self.device)
+        take = order[: min(self.opts.il_batch, n)].sort().values.cpu().numpy()
         seq = Sequences(ex.states[take], ex.actions[take], ex.mask[take], ex.goal[take])
         last = int(seq.mask.sum(1).max())
         seq = Sequences(seq.states[:, :last], seq.actions[:, :last], seq.mask[:, :last], seq.goal)
         logits, _ = self.sequence_pass(seq, graph)
-        mask = torch.from_numpy(seq.mask.T.astype(np.float32))
-        return imitation_loss(logits, torch.from_numpy(seq.actions.T.copy()), mask), int(seq.mask.sum())
+        mask = self.model.tensor(seq.mask.T.astype(np.float32))
+        return imitation_loss(logits, self.model.tensor(seq.actions.T), mask), int(seq.mask.sum())
 
     def skill_extension(self, graph) -> torch.Tensor | None:
         """A2C's loss on this rollout's relabelled sub-trajectories (whole episodes: Monte-Carlo
@@ -470,17 +488,20 @@ class Trainer:
             return None
         logits, values = self.sequence_pass(seq, graph)
         log_p = F.log_softmax(logits, -1)
-        actions = torch.from_numpy(seq.actions.T.copy())
+        tensor = self.model.tensor
+        actions = tensor(seq.actions.T)
         taken = log_p.gather(2, actions[..., None]).squeeze(2)
         entropy = -(log_p.exp() * log_p).sum(-1)
-        mask = torch.from_numpy(seq.mask.T.astype(np.float32))
-        rewards = torch.from_numpy(seq.rewards.T.copy())
+        mask = tensor(seq.mask.T.astype(np.float32))
+        rewards = tensor(seq.rewards.T)
         dones = torch.zeros_like(rewards)
-        dones[torch.from_numpy(seq.mask.sum(1) - 1), torch.arange(len(seq.goal))] = 1.0
-        returns = n_step_returns(rewards, dones, torch.zeros(len(seq.goal)), self.opts.gamma)
+        dones[tensor(seq.mask.sum(1) - 1), torch.arange(len(seq.goal), device=self.device)] = 1.0
+        returns = n_step_returns(
+            rewards, dones, torch.zeros(len(seq.goal), device=self.device), self.opts.gamma
+        )
         weights = None
         if self.opts.tse_importance:
-            mu = torch.from_numpy(seq.behaviour.T.copy()).float()
+            mu = tensor(seq.behaviour.T).float()
             ratio = (taken.detach().exp() / mu).clamp(max=1.0)
             weights = torch.where(torch.isnan(mu), torch.ones_like(ratio), ratio)
         loss, _ = actor_critic_loss(
@@ -555,7 +576,7 @@ class Trainer:
         torch.set_rng_state(ck["rng"]["torch"])
         random.setstate(ck["rng"]["python"])
         self.nav.load_state_dict(ck["agents"])
-        self.hidden = ck["hidden"]
+        self.hidden = None if ck["hidden"] is None else tuple(h.to(self.device) for h in ck["hidden"])
         self.history = None if ck["history"] is None else ck["history"].numpy().copy()
         self.tse.load_state_dict(ck["tse"])
         self.frames, self.updates, self.tick = ck["frames"], ck["updates"], ck["tick"]
@@ -569,8 +590,8 @@ def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, see
     n = len(targets)
     nav = Navigators(space, space.target_kitchen[targets])
     nav.begin(np.arange(n), targets, starts, cap)
-    generator = torch.Generator().manual_seed(seed)
-    hidden = model.net.initial_state(n)
+    generator = torch.Generator(model.device).manual_seed(seed)
+    hidden = model.net.initial_state(n, model.device)
     ff = model.config.arch == "ff"
     history = np.repeat(starts[:, None], model.config.history, 1) if ff else None
     scene = np.zeros(n, np.int64)
@@ -590,7 +611,7 @@ def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, see
                 scene[idx] if ff else None,
                 history[idx] if ff else None,
             )
-            action = torch.multinomial(F.softmax(logits, -1), 1, generator=generator).squeeze(1).numpy()
+            action = torch.multinomial(F.softmax(logits, -1), 1, generator=generator).squeeze(1).cpu().numpy()
             if hidden is not None:
                 for h, r in zip(hidden, rows):
                     h[idx] = r
@@ -662,7 +683,7 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
     """Train (or resume) a run: A2C (rl=True) with IL and TSE as the options say, or IL alone."""
     options.check()
     torch.set_num_threads(options.threads)
-    ranks = distributed.start()
+    ranks = distributed.start(torch.device(run.device))
     progress = run.progress if ranks.main else (lambda line: None)
     trainer = Trainer(run, options, model_config, rl, ranks)
     last, best = run.directory / "last.pt", run.directory / "best.pt"
