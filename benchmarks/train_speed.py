@@ -2,7 +2,8 @@
 
     python benchmarks/train_speed.py                      # every row of Table I's learned methods
     python benchmarks/train_speed.py --updates 5 --kitchens FloorPlan1
-    python benchmarks/train_speed.py --pixels --updates 3 --kitchens FloorPlan1   # the GPU path
+    python benchmarks/train_speed.py --pixels --updates 3 --kitchens FloorPlan1   # end to end from views
+    python benchmarks/train_speed.py --device cuda --agents 64                     # on a GPU
 
 For each method and options (default sizes: 64 agents in each of the 20 training kitchens, rollouts of
 20 steps, LSTM 256, bf16 autocast) it builds the trainer exactly as `kgnavbench train` does, runs one
@@ -22,6 +23,7 @@ from pathlib import Path
 import torch
 
 from kgnavbench import runs, train
+from kgnavbench.device import resolve
 from kgnavbench.plugins import load_plugin
 
 ROWS = [
@@ -36,12 +38,17 @@ ROWS = [
 ]
 
 
-def trainer_of(method: str, options: dict, kitchens: tuple[str, ...], directory: Path):
+def trainer_of(method: str, options: dict, kitchens: tuple[str, ...], directory: Path, device: str):
     plugin = load_plugin(method)
     config = plugin.config(options)
-    run = runs.Run(directory, method, 10**12, 0, kitchens, progress=lambda line: None)
+    run = runs.Run(directory, method, 10**12, 0, kitchens, progress=lambda line: None, device=device)
     model_config = plugin.module.model_config(config)
     return train.Trainer(run, config, model_config, rl=method != "imitation"), config
+
+
+def synchronize(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
 
 
 def main() -> None:
@@ -59,7 +66,9 @@ def main() -> None:
     parser.add_argument(
         "--pixels", action="store_true", help="only lstm_a3c end to end from the views (pixels=true)"
     )
+    parser.add_argument("--device", default="cpu", help="auto | cpu | cuda (default cpu)")
     args = parser.parse_args()
+    device = str(resolve(args.device))
     rows = [("lstm_a3c", {"pixels": "true"})] if args.pixels else ROWS
     if args.methods:
         rows = [(m, o) for m, o in rows if m in args.methods.split(",")]
@@ -71,20 +80,22 @@ def main() -> None:
     rows = [(m, {**o, **extra}) for m, o in rows]
     torch.set_num_threads(args.threads)
     kitchens = runs.training_kitchens(tuple(k for k in args.kitchens.split(",") if k))
-    print(f"{len(kitchens)} training kitchens, {args.threads} threads, torch {torch.__version__}")
+    print(f"{len(kitchens)} training kitchens, {args.threads} threads, {device}, torch {torch.__version__}")
     with tempfile.TemporaryDirectory() as tmp:
         for method, options in rows:
-            trainer, config = trainer_of(method, options, kitchens, Path(tmp))
+            trainer, config = trainer_of(method, options, kitchens, Path(tmp), device)
             trainer.update()  # warm-up: first-call allocations
+            synchronize(device)
             start, frames = time.perf_counter(), trainer.frames
             for _ in range(args.updates):
                 trainer.update()
+            synchronize(device)
             seconds = time.perf_counter() - start
             rate = (trainer.frames - frames) / seconds
             shown = {k: v for k, v in options.items() if k not in ("agents_per_kitchen", "fixed_targets")}
             label = method + (" " + " ".join(f"{k}={v}" for k, v in shown.items()) if shown else "")
             print(
-                f"train  {label:44s} {trainer.nav.n:5d} agents  {rate:9,.0f} frames/s  "
+                f"train  {label:44s} {trainer.total_agents:5d} agents  {rate:9,.0f} frames/s  "
                 f"({args.updates} updates in {seconds:.1f} s; il={config.il} tse={config.tse})"
             )
         if args.pixels:
