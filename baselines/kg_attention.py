@@ -26,7 +26,8 @@ class Config(TrainOptions):
     il: bool = True  # the paper's KG rows build on +IL+TSE
     tse: bool = True
     attention: bool = True  # false: the +KG row (mean over the visible objects)
-    # the softmax over "visible" (R_z nodes, masked) or "all" (every node, the paper's wording)
+    # the softmax over "visible" (R_z nodes, masked; chosen on validation, README "Table I") or "all"
+    # (every node, the paper's wording)
     attention_nodes: str = "visible"
     kg_graph: str = "accumulated"  # or "per_step"
     gcn: int = 128  # GCN width per layer

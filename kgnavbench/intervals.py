@@ -32,7 +32,11 @@ CONFIDENCE = 0.95
 _BLOCK = 1_000_000
 
 HOLDS, REVERSED, CANNOT_TELL = "holds", "reversed", "cannot tell"
-VERDICTS = (HOLDS, REVERSED, CANNOT_TELL)
+HIGHER, LOWER = "higher", "lower"  # where the paper has no side: ours alone
+VERDICTS = (HOLDS, REVERSED, CANNOT_TELL, HIGHER, LOWER)
+# A paper difference below this many percentage points has no side: the paper prints one run per row,
+# to two decimals, and a difference of a few hundredths of a point claims nothing.
+PAPER_TIE = 0.5
 
 # One seed's episodes: (stratum, value) per episode; the stratum is the episode's target.
 SeedEpisodes = Sequence[tuple[str, float]]
@@ -188,12 +192,16 @@ def verdict(paper_difference: float | None, low: float, high: float) -> str:
 
     * "holds": the interval lies wholly on the same side of 0 as the paper's difference;
     * "reversed": it lies wholly on the other side;
-    * "cannot tell": it contains 0 (ends included), or the paper's difference is exactly 0 or missing
-      (None: the paper reports the cell for one of the two rows only), so there is no side to agree with.
+    * "cannot tell": it contains 0 (ends included);
+    * where the paper has no side (its difference is missing, None: a comparison of ours or a cell the
+      paper reports for one row only; or smaller than PAPER_TIE points), "higher" or "lower": our
+      interval lies wholly above or below 0, with no claim of the paper's to agree or disagree with.
     """
-    if paper_difference is None or paper_difference == 0 or low <= 0 <= high:
+    if low <= 0 <= high:
         return CANNOT_TELL
     ours_positive = low > 0
+    if paper_difference is None or abs(paper_difference) < PAPER_TIE:
+        return HIGHER if ours_positive else LOWER
     return HOLDS if ours_positive == (paper_difference > 0) else REVERSED
 
 

@@ -14,7 +14,7 @@ A cell is the mean over seeds of each seed's episode mean, with a 95% stratified
 over seeds and episodes (`intervals`), the paper's number beside it; "–" where there are no episodes or
 the paper has none (FF A3C in unseen kitchens). Under the table, each comparison of the spec gets, per
 cell and metric, the paper's difference, ours with its interval, and a verdict (holds, reversed, cannot
-tell).
+tell; higher or lower where the paper has no side).
 """
 
 from __future__ import annotations
@@ -560,8 +560,9 @@ ABLATION_INTRO = (
     "For each comparison the paper draws and each cell: other − base in percentage points, the paper's "
     "(as printed) and ours (the difference of the two rows' means, with the 95% interval of the "
     "differences of their independent bootstrap replicates), and the verdict: holds (our interval lies "
-    "on the paper's side of 0), reversed (on the other side), cannot tell (it contains 0, or the "
-    "paper's difference is 0 or missing); '–': no episodes."
+    "on the paper's side of 0), reversed (on the other side), cannot tell (it contains 0); where the "
+    "paper has no side (no difference printed, or one below 0.5 points), higher or lower (our interval "
+    "lies above or below 0); '–': no episodes."
 )
 
 

@@ -9,7 +9,9 @@ import pytest
 
 from kgnavbench.intervals import (
     CANNOT_TELL,
+    HIGHER,
     HOLDS,
+    LOWER,
     REVERSED,
     Bootstrap,
     Interval,
@@ -149,13 +151,17 @@ def test_two_rows_are_bootstrapped_independently():
 def test_verdicts():
     # holds: the interval is wholly on the paper's side of 0
     assert verdict(4.3, 1.0, 6.0) == HOLDS == "holds"
-    assert verdict(-0.03, -5.0, -0.5) == HOLDS
+    assert verdict(-0.6, -5.0, -0.5) == HOLDS
     # reversed: wholly on the other side
     assert verdict(4.3, -6.0, -1.0) == REVERSED == "reversed"
-    assert verdict(-0.03, 0.5, 5.0) == REVERSED
-    # cannot tell: the interval holds 0 (an end at 0 included), or the paper has no side
+    assert verdict(-0.6, 0.5, 5.0) == REVERSED
+    # cannot tell: the interval holds 0 (an end at 0 included)
     assert verdict(4.3, -1.0, 6.0) == CANNOT_TELL == "cannot tell"
     assert verdict(4.3, 0.0, 6.0) == CANNOT_TELL
     assert verdict(-4.3, -6.0, 0.0) == CANNOT_TELL
-    assert verdict(0.0, 1.0, 6.0) == CANNOT_TELL
-    assert verdict(None, 1.0, 6.0) == CANNOT_TELL
+    assert verdict(None, -1.0, 6.0) == CANNOT_TELL
+    # the paper has no side (no difference, or under half a point: -0.03 claims nothing): ours alone
+    assert verdict(None, 1.0, 6.0) == HIGHER == "higher"
+    assert verdict(0.0, -6.0, -1.0) == LOWER == "lower"
+    assert verdict(-0.03, -5.0, -0.5) == LOWER
+    assert verdict(0.49, 0.5, 5.0) == HIGHER

@@ -314,19 +314,23 @@ def test_the_markdown_shows_intervals_the_papers_numbers_and_the_ablation_check(
     checks = {row[1]: row for row in rows}
     assert len(rows) == len(checks) == 5
     assert "comparison" in lines and "**Ablation check.**" in md
-    # the paper: 52.58 - 52.32 = +0.26 (ours +50: holds) and 98.44 - 98.47 = -0.03 (ours +75: reversed)
+    # the paper: 52.58 - 52.32 = +0.26 and 98.44 - 98.47 = -0.03, under half a point: no side to agree
+    # with, so ours alone (+50, +75: higher)
     assert checks["static seen/seen"][2:] == [
         "+0.26",
         "+50.0 [+50.0, +50.0]",
-        "holds",
+        "higher",
         "-0.03",
         "+75.0 [+50.0, +100.0]",
-        "reversed",
+        "higher",
     ]
     # 41.09 - 32.56 = +8.53; ours 0 [0, 0] holds 0: cannot tell
     assert checks["static unseen kitchens"][5:] == ["+8.53", "+0.0 [+0.0, +0.0]", "cannot tell"]
     assert checks["static seen/unseen"][2:] == ["+0.79", "–", "–", "+2.30", "–", "–"]  # no episodes
-    assert "Verdicts: SPL: holds 1, reversed 0, cannot tell 1; SR: holds 0, reversed 1, cannot tell 1." in md
+    assert (
+        "Verdicts: SPL: holds 0, reversed 0, cannot tell 1, higher 1, lower 0; "
+        "SR: holds 0, reversed 0, cannot tell 1, higher 1, lower 0." in md
+    )
 
 
 def _csv_rows(text: str) -> list[dict]:
@@ -394,7 +398,7 @@ def test_the_ablation_csv():
         "50",
         "100",
     )
-    assert sr["verdict"] == "reversed"
+    assert sr["verdict"] == "higher"  # the paper: -0.03, no side
     unseen = by[("unseen_kitchens", "static", "SR")]
     assert (unseen["paper_difference"], unseen["difference"], unseen["verdict"]) == (
         "8.53",
@@ -411,7 +415,7 @@ def test_the_latex_has_both_tables():
     assert r"+KG+Attention & 50.0 [50.0, 50.0] & 75.0 [50.0, 100.0]" in tex
     assert r"+KG+Attention (paper) & 52.58 & 98.44 & 14.89 & 44.25 & 7.20 & 41.09" in tex
     # numbers get a math minus, names keep their hyphens; TeX's specials are escaped
-    assert r"+KG+Attention $-$ +KG & static seen/seen & +0.26 & +50.0 [+50.0, +50.0] & holds & $-$0.03" in tex
+    assert r"+KG+Attention $-$ +KG & static seen/seen & +0.26 & +50.0 [+50.0, +50.0] & higher & $-$0.03" in tex
     assert (
         r"95\% stratified bootstrap" in tex
         and "FF A3C (paper) & 35.16 & 88.33 & 10.81 & 35.64 & -- & --" in tex
