@@ -1,4 +1,4 @@
-"""Stage 18 — figures: the paper's figures from Table I's runs, as PNG drawn with OpenCV.
+"""Stage 19 — figures: the paper's figures from Table I's runs, as PNG drawn with OpenCV.
 
 `bar_line_figure` (bars with a line on a second axis), `scatter_figure` (labelled points, e.g. a
 t-SNE), `curves_figure` (training curves); `tsne` is exact t-SNE in torch. `figures` draws the
@@ -502,7 +502,7 @@ def unseen_kitchen_stats(episodes: list[dict], where="episodes") -> tuple[float,
 def _kg_checkpoint(train_dir: Path) -> tuple[dict, Path] | None:
     """The best-validation checkpoint of a training run when its model has an accumulated knowledge
     graph, else None."""
-    from .train import TrainError, load_checkpoint  # lazily: recording must not cost a trainer import
+    from .runs import TrainError, load_checkpoint  # lazily: recording must not cost a torch import
 
     path = train_dir / "best.pt"
     if not path.exists():

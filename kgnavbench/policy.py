@@ -1,4 +1,4 @@
-"""Stage 13 — policy: a trained checkpoint as a plugin policy, on what the env shows every plugin.
+"""Stage 14 — policy: a trained checkpoint as a plugin policy, on what the env shows every plugin.
 
 `load_policy(checkpoint)` is the learned plugins' `make_policy`. The policy reads only the
 observations (`features` and `target_features`, the frozen encoder's standardized features of the view
@@ -17,9 +17,10 @@ import torch
 import torch.nn.functional as F
 
 from . import models
+from .agent import Model, rows_of
 from .device import DeviceError, resolve
 from .kitchens import object_types
-from .train import Model, TrainError, _rows, load_checkpoint
+from .runs import TrainError, load_checkpoint
 
 
 class LearnedPolicy:
@@ -107,7 +108,7 @@ class LearnedPolicy:
         self.fresh.difference_update(agents)
         with torch.no_grad():
             logits, _, rows_after, extras = self.model.forward(
-                view, target, target_rows, r_t, r_g, _rows(self.hidden, slots), self.graph, scene
+                view, target, target_rows, r_t, r_g, rows_of(self.hidden, slots), self.graph, scene
             )
             actions = torch.multinomial(F.softmax(logits, -1), 1, generator=self.generator).squeeze(1)
         if self.hidden is not None:

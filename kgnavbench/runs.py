@@ -12,15 +12,18 @@ from __future__ import annotations
 
 import ast
 import hashlib
+import io
 import json
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import torch
+
 from . import claims, distributed
 from .device import DeviceError, name_of, resolve
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS
-from .files import atomic_write, git_revision
+from .files import atomic_write, first_line, git_revision
 from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import load_plugin
 from .tasks import load_task_file
@@ -179,7 +182,8 @@ def training_kitchens(kitchens=()) -> tuple[str, ...]:
 # graphs' semantics, the env's rewards, the models and this trainer (kitchens, world and render reach a
 # run through the state-graph cache, which is keyed by their own fingerprint)
 TRAINING_CODE = (
-    "tasks.py", "encoder.py", "env.py", "vecenv.py", "runs.py", "losses.py", "models.py", "train.py",
+    "tasks.py", "encoder.py", "env.py", "vecenv.py", "runs.py", "losses.py", "models.py", "agent.py",
+    "train.py",
 )  # fmt: skip
 
 
@@ -296,3 +300,39 @@ def _train_in(directory: Path, hook, config, record: dict, run: Run) -> Path:
         atomic_write(config_path, json.dumps({**record, "git_revision": git_revision()}, indent=2) + "\n")
     hook(config, run)
     return directory
+
+
+# ------------------------------------------------------------------------------------------------
+# Checkpoints
+
+CHECKPOINT_FORMAT = 1
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    """Write a checkpoint atomically: a crash leaves the old one or the new one, never half of one."""
+
+    def write(f) -> None:
+        buffer = io.BytesIO()
+        torch.save(state, buffer)
+        f.write(buffer.getvalue())
+
+    atomic_write(path, write)
+
+
+def load_checkpoint(path: Path | str) -> dict:
+    """A checkpoint written by `train.learn`; anything else is a TrainError naming the file."""
+    path = Path(path)
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError("not a kgnavbench checkpoint")
+        for key in ("model", "model_config", "covis", "kitchens", "frames"):
+            if key not in ck:
+                raise ValueError(f"no {key!r}")
+        return ck
+    except FileNotFoundError as e:
+        raise TrainError(f"checkpoint {path} does not exist") from e
+    except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, one line naming it
+        raise TrainError(
+            f"checkpoint {path} is corrupt ({type(e).__name__}: {first_line(e)}); delete it to start over"
+        ) from e

@@ -1,19 +1,18 @@
-"""Stage 12 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
+"""Stage 13 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
 imitation learning (IL), target skill extension (TSE), checkpoints, logs and resumption.
 
-It stands on the stages before it: the run directory and options (kgnavbench/runs.py), the batched
-navigators over all training kitchens' state graphs as one (kgnavbench/vecenv.py: a step is a handful
-of NumPy gathers through the env's own `transition`), the losses and the IL and TSE data
-(kgnavbench/losses.py) and the networks (kgnavbench/models.py). Read it top to bottom:
+It stands on the stages before it: the run directory, options and checkpoints (kgnavbench/runs.py),
+the batched navigators over all training kitchens' state graphs as one (kgnavbench/vecenv.py: a step
+is a handful of NumPy gathers through the env's own `transition`), the losses and the IL and TSE data
+(kgnavbench/losses.py), and the network with its inputs around it (kgnavbench/agent.py). Read it
+top to bottom:
 
-1. `Model`: the network with what it needs around it (the state space's features and object
-   vectors, the knowledge graph's per-update terms, FF frame histories, scene ids); `unroll` replays a
-   rollout with autograd.
-2. `Trainer`: the rollout (20 steps of all agents, then one learning pass over them), the IL and TSE
+1. `Trainer`: the rollout (20 steps of all agents, then one learning pass over them), the IL and TSE
    passes, validation on fixed episodes, and the checkpoint (model, optimiser, every RNG, every agent's
    episode and LSTM state, the co-visibility counts): a run killed at any moment resumes from
-   `last.pt` exactly as if it had never stopped.
-3. `learn`: the loop, `metrics.csv`, progress lines, `last.pt` / `best.pt` (best validation SR).
+   `last.pt` exactly as if it had never stopped. Under torchrun each rank holds its share of the
+   agents (kgnavbench/distributed.py).
+2. `learn`: the loop, `metrics.csv`, progress lines, `last.pt` / `best.pt` (best validation SR).
 A trained checkpoint becomes a plugin policy in the next stage, kgnavbench/policy.py.
 """
 
@@ -34,8 +33,9 @@ import torch
 import torch.nn.functional as F
 
 from . import distributed, encoder, models
+from .agent import Model, detached, keep_rows, run_episodes
 from .env import reward
-from .files import atomic_write, first_line
+from .files import atomic_write
 from .kitchens import KITCHEN_NAMES
 from .losses import (
     Sequences,
@@ -51,16 +51,14 @@ from .losses import (
     relabel,
     subtarget_types,
 )
-from .runs import Run, TrainError, TrainOptions
+from .runs import CHECKPOINT_FORMAT, Run, TrainError, TrainOptions, load_checkpoint, save_checkpoint
 from .tasks import (
     STOP,
     load_task_file,
 )
 from .vecenv import CURRICULUM_REACH, Navigators, StateSpace, build_space
 
-CHECKPOINT_FORMAT = 1
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
-EXPERTS = ("walk_back", "shortest", "dagger")
 METRICS = (
     "frames",
     "seconds",
@@ -79,125 +77,7 @@ METRICS = (
 
 
 # ------------------------------------------------------------------------------------------------
-# 1. The model around the network, and 2. the trainer
-
-
-def _detach(hidden):
-    return None if hidden is None else tuple(h.detach() for h in hidden)
-
-
-def _rows(hidden, idx):
-    return None if hidden is None else tuple(h[idx] for h in hidden)
-
-
-def _keep(hidden, keep: torch.Tensor):
-    return None if hidden is None else tuple(h * keep.view(-1, *([1] * (h.dim() - 1))) for h in hidden)
-
-
-class Model:
-    """The actor-critic with what it needs around it: features and object vectors of a state space,
-    the knowledge graph, frame histories (FF) and scene ids."""
-
-    def __init__(self, net, config: models.ModelConfig, covis, bf16: bool, device="cpu"):
-        self.net, self.config, self.covis, self.device = net, config, covis, torch.device(device)
-        self.bf16 = bf16 or self.device.type == "cuda"  # bf16 autocast on CUDA; on the CPU as asked
-        self.uses_graph = config.kg != "none" and config.kg_graph == "accumulated"
-        self._space: tuple[int, torch.Tensor, torch.Tensor] | None = None  # a space's tables on the device
-
-    def tensor(self, array) -> torch.Tensor:
-        """A NumPy array as a tensor on the model's device (the array itself on the CPU)."""
-        return torch.from_numpy(np.ascontiguousarray(array)).to(self.device)
-
-    def autocast(self):
-        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16)
-
-    def tables(self, space: StateSpace) -> tuple[torch.Tensor, torch.Tensor]:
-        """The space's standardized features and object vectors on the device, moved once per space."""
-        if self._space is None or self._space[0] != id(space):
-            self._space = (id(space), space.features_t.to(self.device), space.objects_t.to(self.device))
-        return self._space[1], self._space[2]
-
-    def adjacency(self) -> torch.Tensor | None:
-        if not self.uses_graph:
-            return None
-        return torch.as_tensor(np.asarray(self.covis.adjacency()), dtype=torch.float32).to(self.device)
-
-    def graph(self):
-        """The knowledge graph's per-update terms (models.GraphTerms), computed once for all the steps
-        that share these weights and this adjacency; None without an accumulated graph."""
-        adjacency = self.adjacency()
-        if adjacency is None:
-            return None
-        with self.autocast():
-            return self.net.graph_terms(adjacency)
-
-    def inputs(self, space: StateSpace, states, goals, history=None):
-        """The network's inputs for agents in `states` (or their frame `history` (..., H) for FF)
-        toward the target images of `goals` (states): view features (or views), each distinct target's
-        features (or view) once with the row of every agent's (None for FF: one per agent), and the
-        visible-type vectors R_t and R_g. Any leading shape (B or T x B)."""
-        features, objects = self.tables(space)
-        s, g = self.tensor(states), self.tensor(goals)
-        target_rows = None
-        if self.config.arch == "lstm":
-            distinct, rows = np.unique(goals, return_inverse=True)
-            target_rows = self.tensor(rows.reshape(-1))
-        else:
-            distinct = goals
-        if self.config.pixels:
-            view = self.tensor(space.views[history if history is not None else states])
-            target = self.tensor(space.views[distinct])
-        else:
-            view = features[self.tensor(history) if history is not None else s]
-            target = features[self.tensor(distinct)]
-        return view, target, target_rows, objects[s], objects[g]
-
-    def __call__(self, space: StateSpace, states, goals, hidden, graph, scene=None, history=None):
-        """One forward pass: agents in `states` (or their frame `history` (B, H) for FF) toward the
-        target images of `goals` (states); `graph`: the knowledge graph's terms (`Model.graph`)."""
-        view, target, target_rows, r_t, r_g = self.inputs(space, states, goals, history)
-        return self.forward(view, target, target_rows, r_t, r_g, hidden, graph, scene)
-
-    def forward(self, view, target, target_rows, r_t, r_g, hidden, graph, scene=None):
-        """One forward pass on the network's inputs themselves (as `inputs` gives them; the evaluation
-        policy builds them from the env's observations); scene: (B,) training-kitchen indices (FF)."""
-        with self.autocast():
-            logits, value, hidden, extras = self.net(
-                view,
-                target,
-                r_t,
-                r_g,
-                hidden,
-                adjacency=graph,
-                scene=None if scene is None else self.tensor(scene),
-                target_rows=target_rows,
-            )
-        return logits.float(), value.float(), hidden, extras
-
-    def unroll(self, space: StateSpace, states, goals, hidden, keep, graph, scene=None, history=None):
-        """The network over T steps of B agents at once, for learning: states and goals (T, B) (FF:
-        history (T, B, H)), the LSTM state before the first step, keep (T, B) 0 where an episode ended
-        at that step (the state is zeroed after it; None: no ends). The parts that do not recur run
-        once over all T x B rows, only the LSTM cell steps through time. -> logits (T, B, 10), values
-        (T, B)."""
-        n, b = states.shape
-        flat = history.reshape(n * b, -1) if history is not None else None
-        view, target, target_rows, r_t, r_g = self.inputs(space, states.reshape(-1), goals.reshape(-1), flat)
-        with self.autocast():
-            joint, _ = self.net.encode(view, target, r_t, r_g, graph, target_rows)
-            if self.config.arch != "lstm":
-                scenes = self.tensor(np.tile(scene, n))
-                logits, values, _ = self.net.act(joint, None, scenes)
-            else:
-                joint = joint.view(n, b, -1)
-                outputs = []
-                for t in range(n):
-                    hidden = self.net.recur(joint[t], hidden)
-                    outputs.append(hidden[0])
-                    if keep is not None:
-                        hidden = _keep(hidden, keep[t])
-                logits, values = self.net.heads(torch.stack(outputs))
-        return logits.float().view(n, b, -1), values.float().view(n, b)
+# 1. The trainer
 
 
 class Trainer:
@@ -337,7 +217,7 @@ class Trainer:
         histories = np.zeros((n, b, self.model_config.history), np.int64) if self.ff else None
         rewards = np.zeros((n, b), np.float32)
         dones = np.zeros((n, b), np.float32)
-        start_hidden = hidden = _detach(self.hidden)
+        start_hidden = hidden = detached(self.hidden)
         scene = nav.kitchen if self.ff else None
         with torch.no_grad():
             for t in range(n):
@@ -370,7 +250,7 @@ class Trainer:
                     self.stats["successes"] += int(nav.success[finished].sum())
                     self.stats["returns"] += float(nav.episode_return[finished].sum())
                     self._new_episodes(finished)
-                hidden = _keep(hidden, self.model.tensor(~done).float())
+                hidden = keep_rows(hidden, self.model.tensor(~done).float())
                 if self.ff:
                     self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
                     self.history[finished] = nav.state[finished, None]
@@ -583,78 +463,8 @@ class Trainer:
         self.best_val_sr, self.stats = ck["best_val_sr"], dict(ck["stats"])
 
 
-def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, seed: int):
-    """Run fixed episodes (target rows, start states) to the end with the model's sampled actions;
-    returns SR and SPL in percent and the frames taken. FF's scene-specific layers: the first training
-    kitchen's (the validation kitchens have none of their own)."""
-    n = len(targets)
-    nav = Navigators(space, space.target_kitchen[targets])
-    nav.begin(np.arange(n), targets, starts, cap)
-    generator = torch.Generator(model.device).manual_seed(seed)
-    hidden = model.net.initial_state(n, model.device)
-    ff = model.config.arch == "ff"
-    history = np.repeat(starts[:, None], model.config.history, 1) if ff else None
-    scene = np.zeros(n, np.int64)
-    live = np.ones(n, bool)
-    frames = 0
-    with torch.no_grad():
-        graph = model.graph()
-        while live.any():
-            idx = np.flatnonzero(live)
-            goals = space.destination[nav.target[idx]]
-            logits, _, rows, _ = model(
-                space,
-                nav.state[idx],
-                goals,
-                _rows(hidden, idx),
-                graph,
-                scene[idx] if ff else None,
-                history[idx] if ff else None,
-            )
-            action = torch.multinomial(F.softmax(logits, -1), 1, generator=generator).squeeze(1).cpu().numpy()
-            if hidden is not None:
-                for h, r in zip(hidden, rows):
-                    h[idx] = r
-            _, terminated, truncated = nav.step(action, idx)
-            if ff:
-                history[idx] = np.concatenate([history[idx, 1:], nav.state[idx, None]], 1)
-            live[idx[terminated | truncated]] = False
-            frames += len(idx)
-    shortest = space.dist[targets, starts]
-    spl = nav.success * shortest / np.maximum(np.maximum(nav.path, shortest), 1)
-    return float(100.0 * nav.success.mean()), float(100.0 * spl.mean()), frames
-
-
 # ------------------------------------------------------------------------------------------------
-# 3. The loop: logs, checkpoints, resumption
-
-
-def save_checkpoint(path: Path, state: dict) -> None:
-    def write(f) -> None:
-        buffer = io.BytesIO()
-        torch.save(state, buffer)
-        f.write(buffer.getvalue())
-
-    atomic_write(path, write)
-
-
-def load_checkpoint(path: Path | str) -> dict:
-    """A checkpoint written by `learn`; anything else is a TrainError naming the file."""
-    path = Path(path)
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError("not a kgnavbench checkpoint")
-        for key in ("model", "model_config", "covis", "kitchens", "frames"):
-            if key not in ck:
-                raise ValueError(f"no {key!r}")
-        return ck
-    except FileNotFoundError as e:
-        raise TrainError(f"checkpoint {path} does not exist") from e
-    except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, one line naming it
-        raise TrainError(
-            f"checkpoint {path} is corrupt ({type(e).__name__}: {first_line(e)}); delete it to start over"
-        ) from e
+# 2. The loop: logs, checkpoints, resumption
 
 
 def _read_metrics(path: Path, up_to: int) -> list[dict]:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from kgnavbench import train
+from kgnavbench import runs
 from kgnavbench.cli import main
 from kgnavbench.device import DeviceError, resolve
 from kgnavbench.runs import train_method
@@ -73,7 +73,7 @@ def test_training_and_evaluation_on_cuda(tmp_path, floorplan1_tasks):
     run = train_method(
         "kg_attention", sets, 1400, 0, ("FloorPlan1",), tmp_path, progress=lambda line: None, device="cuda"
     )
-    ck = train.load_checkpoint(run / "last.pt")
+    ck = runs.load_checkpoint(run / "last.pt")
     assert ck["frames"] == 1400 and all(torch.isfinite(v).all() for v in ck["model"].values())
     from kgnavbench.env import parallel_env
     from kgnavbench.policy import LearnedPolicy

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from kgnavbench import train
+from kgnavbench import runs
 
 TINY = {
     "agents_per_kitchen": "7",
@@ -81,7 +81,7 @@ def test_two_gloo_ranks_stay_identical_and_resume_after_kill_9(tmp_path, hermeti
     run_a = Path(lines[-1])
     assert "14 agents on 2 ranks" in whole.stdout and lines.count(str(run_a)) == 1  # rank 0 speaks
     assert json.loads((run_a / "config.json").read_text())["world_size"] == 2
-    a = train.load_checkpoint(run_a / "last.pt")
+    a = runs.load_checkpoint(run_a / "last.pt")
     assert a["frames"] == FRAMES and len(a["ranks"]) == 2
     # the ranks stepped different agents with different generators
     assert not torch.equal(a["ranks"][0]["agents"]["state"], a["ranks"][1]["agents"]["state"])
@@ -100,14 +100,14 @@ def test_two_gloo_ranks_stay_identical_and_resume_after_kill_9(tmp_path, hermeti
     for pid in _tree(proc.pid):  # torchrun and its workers (they run in sessions of their own)
         os.kill(pid, signal.SIGKILL)
     proc.wait()
-    saved = train.load_checkpoint(run_b / "last.pt")["frames"]
+    saved = runs.load_checkpoint(run_b / "last.pt")["frames"]
     assert 0 < saved < FRAMES and not (run_b / "finished.json").exists()
     again = subprocess.run(
         _torchrun(tmp_path / "b" / "runs"), capture_output=True, text=True, env=env, timeout=300
     )
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"at {saved:,} frames" in again.stdout
-    b = train.load_checkpoint(run_b / "last.pt")
+    b = runs.load_checkpoint(run_b / "last.pt")
     assert b["frames"] == FRAMES and a["updates"] == b["updates"]
     for key in a["model"]:
         assert torch.equal(a["model"][key], b["model"][key]), key

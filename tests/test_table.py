@@ -14,7 +14,7 @@ import time
 
 import pytest
 
-from kgnavbench import train
+from kgnavbench import runs
 from kgnavbench.cli import main
 from kgnavbench.evaluate import EpisodeResult
 from kgnavbench.table import (
@@ -492,7 +492,7 @@ def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cach
         validations = [(float(r["val_sr"]), int(r["frames"])) for r in lines if r["val_sr"]]
         best = max(sr for sr, _ in validations)
         latest = max(frames for sr, frames in validations if sr == best)
-        checkpoint = train.load_checkpoint(run / "best.pt")
+        checkpoint = runs.load_checkpoint(run / "best.pt")
         assert checkpoint["val_sr"] == pytest.approx(best, abs=0.01) and checkpoint["frames"] == latest
 
     # killed in the middle (after the third row's training finished) and run again: the same table

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from kgnavbench import losses, models, runs, train, vecenv
+from kgnavbench import agent, losses, models, runs, train, vecenv
 from kgnavbench.cli import main
 from kgnavbench.kitchens import object_types
 from kgnavbench.tasks import STOP
@@ -78,7 +78,7 @@ def test_stop_ends_from_and_wrong_stop_penalty(tmp_path, floorplan1_tasks, monke
         logits[:, STOP] = 0.0
         return logits + zero, torch.zeros(len(states)) + zero, hidden, None
 
-    monkeypatch.setattr(train.Model, "__call__", stop_always)
+    monkeypatch.setattr(agent.Model, "__call__", stop_always)
     options = tiny_options(stop_ends_from=10, wrong_stop_penalty=0.5, n_steps=3)
     trainer = train.Trainer(tiny_run(tmp_path), options, models.ModelConfig(), True)
     rewards = []
@@ -380,12 +380,12 @@ def test_killed_training_resumes_to_the_same_weights(tmp_path, hermetic_cache):
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    saved = train.load_checkpoint(run_b / "last.pt")["frames"]
+    saved = runs.load_checkpoint(run_b / "last.pt")["frames"]
     assert 0 < saved < 840 and not (run_b / "finished.json").exists()
     again = subprocess.run(cmd, capture_output=True, text=True, env=env)
     assert again.returncode == 0, again.stderr
     assert f"at {saved:,} frames" in again.stdout
-    a, b = train.load_checkpoint(run_a / "last.pt"), train.load_checkpoint(run_b / "last.pt")
+    a, b = runs.load_checkpoint(run_a / "last.pt"), runs.load_checkpoint(run_b / "last.pt")
     assert a["frames"] == b["frames"] == 840 and a["updates"] == b["updates"]
     for key in a["model"]:
         assert torch.equal(a["model"][key], b["model"][key]), key
@@ -555,7 +555,7 @@ def test_eval_checkpoint_chooses_best_or_last(capsys, tmp_path, floorplan1_tasks
     base = ["eval", "--method", "lstm_a3c", "--run", str(run_dir), "--kitchens", "FloorPlan1"]
     base += ["--episodes", "1", "--runs", str(tmp_path), "--json"]
     # make last.pt other weights than best.pt, as after training past the best validation
-    checkpoint = train.load_checkpoint(run_dir / "last.pt")
+    checkpoint = runs.load_checkpoint(run_dir / "last.pt")
     for tensor in checkpoint["model"].values():
         if tensor.is_floating_point():
             tensor.add_(1.0)
