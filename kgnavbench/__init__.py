@@ -1,9 +1,25 @@
 """kgnavbench: target-driven visual navigation in the 30 iTHOR kitchens (README.md, DESIGN.md).
 
 Importing the package registers its Gymnasium ids (kgnavbench/vecenv.py): `kgnavbench/FloorPlan1-v0`
-.. `kgnavbench/FloorPlan30-v0`, `kgnavbench/train-v0`, `kgnavbench/val-v0`, `kgnavbench/test-v0`.
+.. `kgnavbench/FloorPlan30-v0`, `kgnavbench/train-v0`, `kgnavbench/val-v0`, `kgnavbench/test-v0`. The
+registration names the entry points as strings, so it imports neither torch nor the env: the
+command line starts fast.
 """
 
-from .vecenv import register_ids as _register_ids
 
-_register_ids()
+def _register_gymnasium_ids() -> None:
+    from gymnasium.envs.registration import register, registry
+
+    names = [f"FloorPlan{i}" for i in range(1, 31)] + ["train", "val", "test"]  # kitchens.KITCHEN_NAMES
+    for name in names:
+        env_id = f"kgnavbench/{name}-v0"
+        if env_id not in registry:
+            register(
+                id=env_id,
+                entry_point="kgnavbench.vecenv:NavigationGymEnv",
+                vector_entry_point="kgnavbench.vecenv:NavigationVectorEnv",
+                kwargs={"kitchens": name},
+            )
+
+
+_register_gymnasium_ids()

@@ -58,7 +58,6 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from .encoder import FEATURE_DIM, encoder_feature_stats, standardize, state_features
 from .kitchens import object_types
 from .render import top_down_map
 from .tasks import (
@@ -210,7 +209,10 @@ class NavigationEnv(ParallelEnv):
             "target_objects": spaces.Box(0, 1, (n_types,), np.uint8),
         }
         if features or observation == "box":
-            # the encoder's standardized per-state features, as the learned agents see them
+            # the encoder's standardized per-state features, as the learned agents see them (torch
+            # loads only for an env that hands out features)
+            from .encoder import FEATURE_DIM, encoder_feature_stats, standardize, state_features
+
             stats = encoder_feature_stats()
             self._features = standardize(state_features(self.kitchen), stats).numpy()
             low = standardize(np.zeros(FEATURE_DIM, np.float32), stats).numpy()

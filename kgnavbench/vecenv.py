@@ -571,18 +571,3 @@ class NavigationGymEnv(_Navigation, Env):
             "kitchen": self.space.kitchens[nav.kitchen[0]],
             "target": self.space.target_ids[nav.target[0]],
         }
-
-
-def register_ids() -> None:
-    """The Gymnasium ids of the module docstring (`import kgnavbench` calls this)."""
-    from gymnasium.envs.registration import register, registry
-
-    for name in (*KITCHEN_NAMES, *SPLIT_NAMES):
-        env_id = f"kgnavbench/{name}-v0"
-        if env_id not in registry:
-            register(
-                id=env_id,
-                entry_point="kgnavbench.vecenv:NavigationGymEnv",
-                vector_entry_point="kgnavbench.vecenv:NavigationVectorEnv",
-                kwargs={"kitchens": name},
-            )

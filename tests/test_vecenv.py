@@ -201,3 +201,19 @@ def test_vector_env_errors_name_the_problem(floorplan1_tasks):
         envs.step(np.zeros(3, np.int64))
     with pytest.raises(vecenv.VecEnvError, match="0..9"):
         envs.step(np.array([0, 10]))
+
+
+def test_every_kitchen_and_split_has_an_id_and_registering_loads_no_torch():
+    import subprocess
+    import sys
+
+    from gymnasium.envs.registration import registry
+
+    from kgnavbench.kitchens import KITCHEN_NAMES
+
+    for name in (*KITCHEN_NAMES, *vecenv.SPLIT_NAMES):
+        assert f"kgnavbench/{name}-v0" in registry
+    # `import kgnavbench` (every command line start) registers them without importing torch
+    code = "import sys, kgnavbench, kgnavbench.cli; print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
