@@ -211,12 +211,17 @@ class NavigationEnv(ParallelEnv):
         if features or observation == "box":
             # the encoder's standardized per-state features, as the learned agents see them (torch
             # loads only for an env that hands out features)
-            from .encoder import FEATURE_DIM, encoder_feature_stats, standardize, state_features
+            from .encoder import (
+                FEATURE_DIM,
+                encoder_feature_stats,
+                feature_bounds,
+                standardize,
+                state_features,
+            )
 
             stats = encoder_feature_stats()
             self._features = standardize(state_features(self.kitchen), stats).numpy()
-            low = standardize(np.zeros(FEATURE_DIM, np.float32), stats).numpy()
-            high = standardize(np.full(FEATURE_DIM, np.finfo(np.float16).max, np.float32), stats).numpy()
+            low, high = feature_bounds(stats)
             parts["features"] = spaces.Box(low, high, (FEATURE_DIM,), np.float32)
             parts["target_features"] = spaces.Box(low, high, (FEATURE_DIM,), np.float32)
         if observation == "box":
@@ -402,20 +407,7 @@ class NavigationEnv(ParallelEnv):
             rows = self._box_rows
             return {a: np.concatenate([rows[s], rows[d]]) for a, s, d in zip(names, states, goals)}
         views, vectors = self._views, self._object_vectors
-        if self.features:
-            f = self._features
-            return {
-                a: {
-                    "view": views[s],
-                    "target": views[d],
-                    "view_objects": vectors[s],
-                    "target_objects": vectors[d],
-                    "features": f[s],
-                    "target_features": f[d],
-                }
-                for a, s, d in zip(names, states, goals)
-            }
-        return {
+        out = {
             a: {
                 "view": views[s],
                 "target": views[d],
@@ -424,6 +416,11 @@ class NavigationEnv(ParallelEnv):
             }
             for a, s, d in zip(names, states, goals)
         }
+        if self.features:
+            f = self._features
+            for o, s, d in zip(out.values(), states, goals):
+                o["features"], o["target_features"] = f[s], f[d]
+        return out
 
     def _infos(self, names: list[str], idx: np.ndarray) -> dict:
         """The info dicts of agents `names` (rows `idx`), from whole-array gathers."""

@@ -58,7 +58,7 @@ from gymnasium import Env, spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .encoder import FEATURE_DIM, N_TYPES, encoder_feature_stats, standardize, state_features
+from .encoder import FEATURE_DIM, N_TYPES, encoder_feature_stats, feature_bounds, standardize, state_features
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, transition
 from .kitchens import KITCHEN_NAMES, check_name, object_types
 from .render import top_down_map
@@ -343,9 +343,7 @@ def default_targets(kitchens: list[str]) -> str:
 def observation_space(views: bool = False, view_size: int = VIEW_SIZE) -> spaces.Dict:
     """One navigator's observation space (the module docstring). The features' bounds are those of
     the cached float16 ReLU features, 0 .. 65504, standardized."""
-    stats = encoder_feature_stats()
-    low = standardize(np.zeros(FEATURE_DIM, np.float32), stats).numpy()
-    high = standardize(np.full(FEATURE_DIM, np.finfo(np.float16).max, np.float32), stats).numpy()
+    low, high = feature_bounds(encoder_feature_stats())
     parts = {
         "features": spaces.Box(low, high, (FEATURE_DIM,), np.float32),
         "target_features": spaces.Box(low, high, (FEATURE_DIM,), np.float32),
