@@ -521,6 +521,20 @@ def test_train_then_eval_every_learned_plugin(capsys, tmp_path, floorplan1_tasks
         assert int(said.split("recorded 1 episodes (")[1].split()[0]) <= 7  # --record-steps ends it
         assert main(["train", *_train(tmp_path, method, 400)[4:], "--record", str(tmp_path / "t.rrd")]) == 0
         assert "recorded" in capsys.readouterr().out and (tmp_path / "t.rrd").exists()
+        # what a recording shows per step: the policy's top-3 attended types, read when asked
+        from kgnavbench.env import parallel_env
+        from kgnavbench.kitchens import object_types
+        from kgnavbench.policy import load_policy
+
+        env = parallel_env(kitchen="FloorPlan1", n_agents=3, features=True)
+        observations, infos = env.reset(seed=0)
+        policy = load_policy(run_dir / "best.pt")
+        assert policy.explain("navigator_0") == {"attention": []}  # before any act()
+        policy.act(observations, infos)
+        for agent in env.agents:
+            top = policy.explain(agent)["attention"]
+            assert 1 <= len(top) <= 3 and all(t in object_types() and 0 < w <= 1 for t, w in top)
+            assert [w for _, w in top] == sorted((w for _, w in top), reverse=True)
 
 
 def test_training_code_hash_ignores_comments_and_docstrings_only(tmp_path):
