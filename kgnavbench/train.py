@@ -139,12 +139,11 @@ class Trainer:
         self.nav.draw(np.arange(n_agents), self.rng, self.cap, self.reach())
         self.hidden = net.initial_state(n_agents, self.device)
         self.history = np.repeat(self.nav.state[:, None], self.model_config.history, 1) if self.ff else None
-        # TSE: the sub-targets sampled per episode, and the windows of the episodes that ended during
-        # this rollout, relabelled by the update that follows it
+        # TSE: the sub-targets sampled per episode; a rollout hands the windows of the episodes that
+        # ended in it to the update's relabelling
         self.tick = 0  # steps of the run (every agent steps at each tick)
         self.tse = SubtargetSampler(n_agents, options.tse_subtargets, options.tse_window)
         self.subtarget_types = subtarget_types(self.space)
-        self.tse_windows: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []
         self.il = options.il or not rl
         self.dagger = self.il and options.il_expert == "dagger"
         self.experts = (
@@ -168,10 +167,11 @@ class Trainer:
         """One rollout of every agent (or, IL only, one expert batch) and one gradient step."""
         graph = self.model.graph()
         loss = torch.zeros((), device=self.device)
+        windows: list = []  # TSE: the sub-target windows of the episodes that end in this rollout
         imitate = self.il and (not self.rl or self.frames < self.opts.il_frames)
         self.nav.stop_ends = self.opts.stop_ends_from is not None and self.frames >= self.opts.stop_ends_from
         if self.rl or self.dagger:
-            rl_loss, il_loss = self.rollout(graph, imitate and self.dagger)
+            rl_loss, il_loss, windows = self.rollout(graph, imitate and self.dagger)
             if self.rl:
                 loss = loss + rl_loss
                 self.stats["rl"] += rl_loss.item()
@@ -189,7 +189,7 @@ class Trainer:
                 self.stats["frames"] += n_frames  # this rank's (metrics sum the ranks')
                 self.frames += int(distributed.sum_tensor(torch.tensor(n_frames), self.ranks))
         if self.rl and self.opts.tse:
-            tse_loss = self.skill_extension(graph)
+            tse_loss = self.skill_extension(graph, windows)
             if tse_loss is not None:
                 loss = loss + self.opts.tse_weight * tse_loss
                 self.stats["tse"] += tse_loss.item()
@@ -202,12 +202,13 @@ class Trainer:
         self.updates += 1
         distributed.check_replicas(self.model.net.parameters(), self.ranks, self.updates)
 
-    def rollout(self, graph, imitate: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def rollout(self, graph, imitate: bool = False) -> tuple[torch.Tensor, torch.Tensor | None, list]:
         """n steps of every agent, then the learning pass over them; returns the A2C loss of the
-        rollout and, when `imitate`, the cross-entropy of the teacher's actions on every visited state
-        (DAgger). The steps run without autograd (acting needs no graph); `Model.unroll` then replays
-        the same states with autograd, the non-recurrent layers once for all n x B rows, which costs
-        far fewer small operations than a graph built step by step."""
+        rollout, when `imitate` the cross-entropy of the teacher's actions on every visited state
+        (DAgger), and (TSE) the sub-target windows of the episodes that ended. The steps run without
+        autograd (acting needs no graph); `Model.unroll` then replays the same states with autograd,
+        the non-recurrent layers once for all n x B rows, which costs far fewer small operations than
+        a graph built step by step."""
         opts, nav, space = self.opts, self.nav, self.space
         n, b = opts.n_steps, nav.n
         states = np.zeros((n, b), np.int64)
@@ -217,6 +218,7 @@ class Trainer:
         histories = np.zeros((n, b, self.model_config.history), np.int64) if self.ff else None
         rewards = np.zeros((n, b), np.float32)
         dones = np.zeros((n, b), np.float32)
+        windows = []
         start_hidden = hidden = detached(self.hidden)
         scene = nav.kitchen if self.ff else None
         with torch.no_grad():
@@ -249,7 +251,9 @@ class Trainer:
                     self.stats["episodes"] += len(finished)
                     self.stats["successes"] += int(nav.success[finished].sum())
                     self.stats["returns"] += float(nav.episode_return[finished].sum())
-                    self._new_episodes(finished)
+                    if opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
+                        windows += self.tse.finish(finished, self.tick)
+                    nav.draw(finished, self.rng, self.cap, self.reach())
                 hidden = keep_rows(hidden, self.model.tensor(~done).float())
                 if self.ff:
                     self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
@@ -279,7 +283,7 @@ class Trainer:
         if imitate:
             optimal, known = optimal_actions(space, targets.reshape(-1), states.reshape(-1))
             il = optimal_action_loss(log_p.reshape(n * b, -1), optimal, known).mean()
-        return loss, il
+        return loss, il, windows
 
     def reach(self) -> int | None:
         """The curriculum's farthest start (actions from the destination) at this frame; None: off or over."""
@@ -288,15 +292,9 @@ class Trainer:
             return None
         return int(CURRICULUM_REACH * self.frames / n)
 
-    def _new_episodes(self, idx: np.ndarray) -> None:
-        if self.opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
-            self.tse_windows += self.tse.finish(idx, self.tick)
-        self.nav.draw(idx, self.rng, self.cap, self.reach())
-
-    def subtrajectories(self) -> Sequences | None:
-        """Up to tse_batch of the sub-targets sampled in the episodes that ended during this rollout,
+    def subtrajectories(self, windows: list) -> Sequences | None:
+        """Up to tse_batch of the sub-target windows of the episodes that ended during a rollout,
         relabelled; the rest are dropped."""
-        windows, self.tse_windows = self.tse_windows, []
         if not windows:
             return None
         take = self.rng.choice(len(windows), min(self.opts.tse_batch, len(windows)), replace=False)
@@ -360,10 +358,10 @@ class Trainer:
         mask = self.model.tensor(seq.mask.T.astype(np.float32))
         return imitation_loss(logits, self.model.tensor(seq.actions.T), mask), int(seq.mask.sum())
 
-    def skill_extension(self, graph) -> torch.Tensor | None:
-        """A2C's loss on this rollout's relabelled sub-trajectories (whole episodes: Monte-Carlo
+    def skill_extension(self, graph, windows: list) -> torch.Tensor | None:
+        """A2C's loss on the rollout's relabelled sub-trajectories (whole episodes: Monte-Carlo
         returns), optionally with truncated importance weights min(1, pi/mu)."""
-        seq = self.subtrajectories()
+        seq = self.subtrajectories(windows)
         if seq is None:
             return None
         logits, values = self.sequence_pass(seq, graph)

@@ -235,8 +235,8 @@ def test_tse_subtrajectories_end_at_their_subtarget_with_a_successful_stop(tmp_p
     sp = trainer.space
     successes = failures = 0
     for _ in range(60):  # rollouts until both kinds of relabelled episode were seen
-        trainer.rollout(None)
-        seq = trainer.subtrajectories()
+        _, _, windows = trainer.rollout(None)
+        seq = trainer.subtrajectories(windows)
         if seq is None:
             continue
         for i in range(len(seq.goal)):
