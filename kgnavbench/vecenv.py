@@ -142,7 +142,8 @@ def build_space(
             raise VecEnvError(f"features of {name} have {feats.shape[0]} rows for {g.n_states} states")
         chosen = [t for t in kt.targets if targets == "all" or t.seen]
         if not chosen:
-            raise VecEnvError(f"{name} has no {targets} targets")
+            hint = f" (a {kt.split} kitchen: its targets are all unseen; use targets='all')"
+            raise VecEnvError(f"{name} has no {targets} targets{hint if targets == 'seen' else ''}")
         training_types = {t.type for t in kt.targets if t.seen}
         held_out = set() if unseen_subtargets else {t.type for t in kt.targets if not t.seen}
         for o in g.world.objects:

@@ -193,6 +193,8 @@ def test_vector_env_errors_name_the_problem(floorplan1_tasks):
         vecenv.NavigationVectorEnv(num_envs=2, kitchens="FloorPlan99")
     with pytest.raises(vecenv.VecEnvError, match="target set"):
         vecenv.NavigationVectorEnv(num_envs=2, kitchens="FloorPlan1", targets="unseen")
+    with pytest.raises(vecenv.VecEnvError, match="FloorPlan21 has no seen targets .*targets='all'"):
+        vecenv.NavigationGymEnv("FloorPlan21", targets="seen")
     with pytest.raises(vecenv.VecEnvError, match="num_envs"):
         vecenv.NavigationVectorEnv(num_envs=0, kitchens="FloorPlan1")
     envs = vecenv.NavigationVectorEnv(num_envs=2, kitchens="FloorPlan1")
