@@ -33,9 +33,9 @@ Termination: Stop ends the episode (stop_ends=False: a Stop that does not succee
     Truncation at max_steps (5000 in training; per episode in evaluation).
 Infos (per agent, every step): success, path_length (actions, Stop not counted), episode_length,
     shortest_path (from the start, under the success rule), collisions, target, target_kind,
-    target_seen, last_view_shows_target, kitchen; and, privileged (only a plugin with PRIVILEGED = True
-    sees them in evaluation: the oracle, and imitation's teacher), state (the state graph's index) and
-    expert_action (the BFS-optimal next action).
+    target_seen, last_view_shows_target, kitchen; and, privileged (in evaluation only a plugin with
+    PRIVILEGED = True sees them: the oracle), state (the state graph's index) and expert_action (the
+    BFS-optimal next action).
 
 autoreset=True (outside PettingZoo's contract, for SuperSuit's vector envs): a navigator whose episode
     ends stays in `env.agents` and starts its next training episode in the same step; that step's

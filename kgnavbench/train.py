@@ -262,9 +262,12 @@ class Trainer:
             _, bootstrap, _, _ = self.model(space, nav.state, goals, hidden, graph, scene, self.history)
         self.hidden = hidden
         if self.model.uses_graph:
-            covis, before = self.model.covis, self.model.covis.counts.clone()
-            covis.add(space.objects[reached.reshape(-1)])
-            if self.ranks.world > 1:  # every rank's frames count, on every rank
+            covis = self.model.covis
+            if self.ranks.world == 1:
+                covis.add(space.objects[reached.reshape(-1)])
+            else:  # every rank's frames count, on every rank
+                before = covis.counts.clone()
+                covis.add(space.objects[reached.reshape(-1)])
                 covis.counts = before + distributed.sum_tensor(covis.counts - before, self.ranks)
         self.frames += n * self.total_agents  # every rank's agents stepped n times
         self.stats["frames"] += n * b  # this rank's (metrics sum the ranks')
