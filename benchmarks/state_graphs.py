@@ -10,8 +10,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from kgnavbench.graph import bfs_distances, build_all, goal_mask, state_graph
 from kgnavbench.kitchens import KITCHEN_NAMES
-from kgnavbench.tasks import bfs_distances, build_all, find_targets, goal_mask, state_graph
+from kgnavbench.tasks import find_targets
 
 
 def main() -> None:

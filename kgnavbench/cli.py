@@ -27,9 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
-import random
 import re
 import sys
 import time
@@ -37,19 +35,22 @@ from pathlib import Path
 
 from .env import EnvError
 from .evaluate import CHECKPOINTS, SPLITS, EvalConfig, EvalError, evaluate, selected_checkpoint
-from .kitchens import KITCHEN_NAMES, Kitchen, KitchenError, check_name, kitchen_summary, load_kitchen
+from .graph import TaskError, build_all, cache_dir
+from .kitchens import KITCHEN_NAMES, KitchenError, check_name, kitchen_summary, load_kitchen
 from .plugins import PluginError, load_plugin, parse_options, plugin_sources
-from .tasks import EPISODES_PER_TARGET, TaskError, build_all, cache_dir, load_tasks
-from .world import ACTIONS, Pose, World, WorldError, parse_action, parse_pose
+from .tasks import EPISODES_PER_TARGET, load_tasks
+from .walk import MAX_SIZE, MIN_SIZE, WalkError, view_size, walk
+from .world import ACTIONS, WorldError
 
 PROG = "kgnavbench"
-MIN_SIZE, MAX_SIZE = 16, 1024
-MAP_MIN_SIZE = 300
-MAX_RANDOM_ACTIONS = 100_000  # a walk prints a line per step: more is a typo, not a walk
 
 
 class UsageError(Exception):
     """Bad command-line input: reported as one `kgnavbench: error: ...` line, exit status 2."""
+
+
+# every stage's bad-input error: one `kgnavbench: error: ...` line and exit status 2, never a traceback
+BAD_INPUT = (UsageError, WalkError, KitchenError, WorldError, TaskError, EnvError, EvalError, PluginError)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -95,126 +96,6 @@ def cmd_kitchens(args: argparse.Namespace) -> int:
         f"{k.name}: {s['objects']} objects, {s['hidden_objects']} hidden, "
         f"{s['openable_receptacles']} openable receptacles, {s['reachable_cells']} reachable cells"
     )
-    return 0
-
-
-# ----------------------------------------------------------------------------------------------------
-# walk
-
-
-def parse_actions(text: str, rng: random.Random) -> list[str]:
-    """Comma-separated action names and/or `random:N` items (N actions drawn with `rng`).
-
-    Every item is checked before anything runs, so a typo fails before the first step."""
-    actions: list[str] = []
-    items = [item.strip() for item in text.split(",")]
-    if not text.strip() or any(not item for item in items):
-        raise UsageError(
-            f"bad --actions {text!r}: expected comma-separated actions like MoveAhead,RotateLeft or random:N"
-        )
-    for item in items:
-        if item.startswith("random:"):
-            count = item[len("random:") :]
-            if not re.fullmatch(r"[0-9]+", count) or int(count) > MAX_RANDOM_ACTIONS:
-                limit = f"0 <= N <= {MAX_RANDOM_ACTIONS:,}"
-                raise UsageError(f"bad --actions item {item!r}: random:N needs a whole number {limit}")
-            actions.extend(rng.choice(ACTIONS) for _ in range(int(count)))
-        else:
-            actions.append(parse_action(item))
-    return actions
-
-
-def parse_start(text: str, kitchen: Kitchen) -> Pose:
-    """`world.parse_pose`, plus the checks it lacks: finite numbers, whole-degree heading and pitch."""
-    try:
-        parts = [float(v) for v in text.split(",")]
-    except ValueError:
-        parts = []
-    if parts and not all(math.isfinite(v) for v in parts):
-        raise UsageError(f"bad pose {text!r}: x, z, heading and pitch must be finite numbers")
-    if any(v != int(v) for v in parts[2:]):
-        raise UsageError(f"bad pose {text!r}: heading and pitch must be whole degrees")
-    return parse_pose(text, kitchen)
-
-
-def _size(text: str) -> int:
-    try:
-        size = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not MIN_SIZE <= size <= MAX_SIZE:
-        raise argparse.ArgumentTypeError(f"{size} is out of range ({MIN_SIZE} .. {MAX_SIZE} pixels)")
-    return size
-
-
-def _pose_dict(pose: Pose) -> dict:
-    return {"x": pose.x, "z": pose.z, "heading": pose.heading, "pitch": pose.pitch}
-
-
-def cmd_walk(args: argparse.Namespace) -> int:
-    from . import render  # OpenCV and numpy start here; `kgnavbench kitchens` does without them
-
-    # --- check every input before the first step
-    kitchen = load_kitchen(args.kitchen)
-    actions = parse_actions(args.actions, random.Random(args.seed))
-    world = World(kitchen, seed=args.placement_seed)
-    if args.start is not None:
-        world.teleport(parse_start(args.start, kitchen))
-    out: Path | None = args.out
-    if out is not None:
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise UsageError(f"cannot create output folder {str(out)!r}: {e.strerror or e}") from None
-        if not os.access(out, os.W_OK):
-            raise UsageError(f"output folder {str(out)!r} is not writable")
-
-    open_width = max([len("open receptacle")] + [len(o.id) for o in world.objects if o.openable])
-
-    def report(step: int, action: str | None, success: bool) -> None:
-        visible = [world.objects[i].id for i in render.visible_objects(world)]
-        if args.json:
-            record = {
-                "step": step,
-                "action": action,
-                "success": success,
-                "pose": _pose_dict(world.pose),
-                "open_receptacle": world.open_receptacle,
-                "visible": visible,
-            }
-            print(json.dumps(record), flush=True)
-        else:
-            print(
-                f"{step:4d}  {action or '(start)':<11}  {'ok' if success else 'FAILED':<6}  "
-                f"{str(world.pose):<22}  {world.open_receptacle or '-':<{open_width}}  "
-                f"{' '.join(visible) or '-'}",
-                flush=True,
-            )
-        if out is not None:
-            render.save_rgb(out / f"view_{step:03d}.png", render.render_view(world, world.pose, args.size))
-
-    if not args.json:
-        print(
-            f"{'step':>4}  {'action':<11}  {'result':<6}  {'pose x,z,heading,pitch':<22}  "
-            f"{'open receptacle':<{open_width}}  visible"
-        )
-    path = [world.pose]
-    failed = 0
-    report(0, None, True)
-    for step, action in enumerate(actions, start=1):
-        result = render.act(world, action)
-        failed += not result.success
-        path.append(world.pose)
-        report(step, action, result.success)
-
-    where = "no files written (use --out DIR to save views and a map)"
-    if out is not None:
-        size = max(args.size, MAP_MIN_SIZE)
-        render.save_rgb(out / "map.png", render.top_down_map(world, size=size, poses=[world.pose], path=path))
-        where = f"{len(actions) + 1} views and map.png written to {out}"
-    summary = f"{kitchen.name}: {len(actions)} steps, {failed} failed; {where}"
-    # with --json, stdout stays one JSON object per line
-    print(summary, file=sys.stderr if args.json else sys.stdout)
     return 0
 
 
@@ -595,11 +476,14 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: the AI2-THOR start scene)",
     )
     p.add_argument(
-        "--size", type=_size, default=300, help=f"view size in pixels, {MIN_SIZE}..{MAX_SIZE} (default 300)"
+        "--size",
+        type=view_size,
+        default=300,
+        help=f"view size in pixels, {MIN_SIZE}..{MAX_SIZE} (default 300)",
     )
     p.add_argument("--out", type=Path, metavar="DIR", help="write view_NNN.png per step and map.png here")
     p.add_argument("--json", action="store_true", help="print one JSON object per step instead of a table")
-    p.set_defaults(func=cmd_walk)
+    p.set_defaults(func=walk)
 
     p = sub.add_parser(
         "prepare",
@@ -799,7 +683,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(_join_negative_values(argv))
         return args.func(args)
-    except (UsageError, KitchenError, WorldError, TaskError, EnvError, EvalError, PluginError) as e:
+    except BAD_INPUT as e:
         print(f"{PROG}: error: {e}", file=sys.stderr)
         return 2
     except SystemExit as e:  # --help
@@ -812,4 +696,4 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
 
-__all__ = ["build_parser", "main", "parse_actions"]
+__all__ = ["build_parser", "main"]

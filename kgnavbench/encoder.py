@@ -1,4 +1,4 @@
-"""Stage 5 — encoder: the frozen view encoder and every state's features, computed once and cached.
+"""Stage 6 — encoder: the frozen view encoder and every state's features, computed once and cached.
 
 Read it top to bottom:
 
@@ -33,8 +33,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .files import atomic_write, first_line
+from .graph import VIEW_SIZE, cache_dir, graph_fingerprint, state_graph
 from .kitchens import DATA_DIR, check_name
-from .tasks import VIEW_SIZE, cache_dir, graph_fingerprint, load_task_file, state_graph
+from .tasks import load_task_file
 from .world import PITCHES
 
 FEATURE_DIM = 512

@@ -1,4 +1,4 @@
-"""Stage 6 — env: target-driven navigation in one kitchen as a PettingZoo ParallelEnv.
+"""Stage 7 — env: target-driven navigation in one kitchen as a PettingZoo ParallelEnv.
 
     env = kgnavbench.env.parallel_env(kitchen="FloorPlan1", n_agents=4)
     observations, infos = env.reset(seed=0)
@@ -58,20 +58,10 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
+from .graph import MOVES, OPEN, STOP, VIEW_SIZE, TaskError, expert_actions, goal_mask
 from .kitchens import object_types
 from .render import top_down_map
-from .tasks import (
-    MOVES,
-    OPEN,
-    STOP,
-    SUCCESS_RULES,
-    VIEW_SIZE,
-    KitchenTasks,
-    TaskError,
-    expert_actions,
-    goal_mask,
-    load_tasks,
-)
+from .tasks import SUCCESS_RULES, KitchenTasks, load_tasks
 from .world import ACTIONS
 
 STEP_REWARD = -0.01

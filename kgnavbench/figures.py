@@ -1,4 +1,4 @@
-"""Stage 19 — figures: the paper's figures from Table I's runs, as PNG drawn with OpenCV.
+"""Stage 20 — figures: the paper's figures from Table I's runs, as PNG drawn with OpenCV.
 
 `bar_line_figure` (bars with a line on a second axis), `scatter_figure` (labelled points, e.g. a
 t-SNE), `curves_figure` (training curves); `tsne` is exact t-SNE in torch. `figures` draws the

@@ -1,4 +1,4 @@
-"""Stage 11 — losses: what the learner minimises, and the data of its imitation and skill-extension terms.
+"""Stage 12 — losses: what the learner minimises, and the data of its imitation and skill-extension terms.
 
 1. The losses. `n_step_returns`, `actor_critic_loss` (policy gradient, value loss with weight
    `value_weight`, entropy bonus; optional per-sample weights for TSE's importance weights),
@@ -23,8 +23,9 @@ import torch
 import torch.nn.functional as F
 
 from .env import reward
+from .graph import STOP, optimal_action_mask, shortest_trajectory, walk_back_trajectory
 from .runs import TrainError
-from .tasks import MIN_START_DISTANCE, STOP, optimal_action_mask, shortest_trajectory, walk_back_trajectory
+from .tasks import MIN_START_DISTANCE
 from .vecenv import StateSpace, arrays_state, load_arrays
 
 # ------------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Stage 8 — plugins: the baseline plugin interface and its registry.
+"""Stage 9 — plugins: the baseline plugin interface and its registry.
 
 A plugin is one Python file (the file name is the method name, `--method NAME`) in one of
   * the shipped baselines: the repository's `baselines/`, installed as the package `kgnavbench_baselines`;
@@ -40,8 +40,8 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from types import ModuleType
 
+from .graph import VIEW_SIZE
 from .kitchens import object_types
-from .tasks import VIEW_SIZE
 from .world import ACTIONS
 
 SHIPPED_PACKAGE = "kgnavbench_baselines"  # the repository's baselines/ folder, installed under this name

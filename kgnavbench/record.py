@@ -1,4 +1,4 @@
-"""Stage 18 — record: rerun-sdk recordings of episodes and training runs, and the viewer.
+"""Stage 19 — record: rerun-sdk recordings of episodes and training runs, and the viewer.
 
 Episodes (`record_episodes`, a .rrd file), on two timelines: `step` counts actions over the whole
 recording (so scrubbing plays the episodes one after another) and `episode` numbers the episode
@@ -42,10 +42,11 @@ import rerun.blueprint as rrb
 
 from . import evaluate
 from .env import parallel_env
+from .graph import MOVES
 from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, guarded, load_plugin
 from .render import top_down_map
-from .tasks import MOVES, load_task_file, load_tasks
+from .tasks import load_task_file, load_tasks
 from .world import ACTIONS, move_offset
 
 # the viewer keeps one layout per application id: episodes and training runs each get their own

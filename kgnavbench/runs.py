@@ -1,4 +1,4 @@
-"""Stage 10 — runs: a learned method's options and its run directory.
+"""Stage 11 — runs: a learned method's options and its run directory.
 
 `TrainOptions` holds every option a learned method shares (a plugin's `Config` extends it; `--set
 key=value`). `train_method` resolves a plugin's config into a run directory `runs/train/<method>-<hash>/`
@@ -182,8 +182,8 @@ def training_kitchens(kitchens=()) -> tuple[str, ...]:
 # graphs' semantics, the env's rewards, the models and this trainer (kitchens, world and render reach a
 # run through the state-graph cache, which is keyed by their own fingerprint)
 TRAINING_CODE = (
-    "tasks.py", "encoder.py", "env.py", "vecenv.py", "runs.py", "losses.py", "models.py", "agent.py",
-    "train.py",
+    "graph.py", "tasks.py", "encoder.py", "env.py", "vecenv.py", "runs.py", "losses.py", "models.py",
+    "agent.py", "train.py",
 )  # fmt: skip
 
 

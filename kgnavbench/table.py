@@ -1,4 +1,4 @@
-"""Stage 17 — table: the paper's Table I from a table spec (`tables/table1.toml`).
+"""Stage 18 — table: the paper's Table I from a table spec (`tables/table1.toml`).
 
 The spec (kgnavbench/table_spec.py) names the protocol, the presets, the rows and the comparisons
 the paper draws between rows. `run_table` goes row by row and seed by seed: train unless a finished

@@ -1,14 +1,4 @@
-"""Stage 4 — tasks: the discrete state graph of a kitchen, targets, splits, fixed episodes, shortest
-paths and expert trajectories.
-
-State graph. A state is (cell, heading, pitch, open receptacle or none) — DESIGN.md's finite set.
-Closed states are every reachable cell x 4 headings x 4 pitches, numbered ((cell * 4 + heading) * 4 +
-pitch). OpenObject in a closed state opens the receptacle that the view there picks (nearest the image
-centre), so each closed state has at most one open twin, numbered after all closed states. An open
-state behaves like its closed twin for every action but Stop (which keeps it open) and OpenObject
-(which closes and reopens the same receptacle): the auto-close rule. Transitions come from stepping
-the world itself; each state also stores what is visible there and its 84x84 view, so an environment
-step is an array lookup. Built once per kitchen and cached on disk (`cache_dir()`).
+"""Stage 5 — tasks: targets, splits and fixed episodes in the state graphs of kgnavbench/graph.py.
 
 Targets (per kitchen, AI2-THOR start scene):
   * static: an object of an eligible type — pickupable, or one of COMMON_ITEMS — visible from some
@@ -29,11 +19,6 @@ Fixed episodes: 100 per target, starting in a closed state at pitch 0 that does 
 at least 10 actions from the target's destination (the place its image shows), drawn with a generator
 seeded by "<kitchen>/<object id>". They are saved in `kgnavbench/data/tasks.json.gz` (committed;
 `make tasks` rebuilds it) and are the same for every method.
-
-Shortest paths: multi-source BFS over the reversed transition table, one vectorised frontier
-expansion per level (no Python loop per node). Experts: the BFS-optimal one (first action in the
-paper's order that lowers the distance) and the paper's (walk back from the destination with
-MoveBack / MoveLeft / RotateRight by priority, then reverse).
 """
 
 from __future__ import annotations
@@ -42,11 +27,9 @@ import dataclasses
 import gzip
 import hashlib
 import json
-import os
 import random
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -54,15 +37,17 @@ from pathlib import Path
 import numpy as np
 
 from .files import atomic_write
-from .kitchens import (
-    DATA_DIR,
-    KITCHEN_DIR,
-    KITCHEN_NAMES,
-    check_name,
-    object_types,
+from .graph import (
+    VIEW_SIZE,
+    StateGraph,
+    TaskError,
+    bfs_distances,
+    build_all,
+    goal_mask,
+    graph_fingerprint,
+    state_graph,
 )
-from .render import Visibility, render_views, visibility
-from .world import ACTIONS, HEADINGS, PITCHES, Pose, World
+from .kitchens import DATA_DIR, KITCHEN_NAMES, check_name
 
 # Household items that count as static targets although they cannot be picked up.
 COMMON_ITEMS = (
@@ -77,11 +62,6 @@ COMMON_ITEMS = (
     "StoveBurner",
     "Toaster",
 )
-OPEN = ACTIONS.index("OpenObject")
-STOP = ACTIONS.index("Stop")
-MOVES = tuple(ACTIONS.index(a) for a in ("MoveAhead", "MoveBack", "MoveRight", "MoveLeft"))
-VIEW_SIZE = 84
-GRAPH_VERSION = 2  # bump when build_state_graph changes what it produces
 N_TRAIN_KITCHENS, N_VAL_KITCHENS = 20, 5
 SUCCESS_RULES = ("visible", "destination")  # see Target.goals
 SEEN_TARGETS_PER_KITCHEN = 7  # the paper: 140 training targets in 20 training kitchens
@@ -90,361 +70,6 @@ MIN_START_DISTANCE = 10
 START_PITCH = 0
 TASKS_FILE = DATA_DIR / "tasks.json.gz"
 TASKS_FORMAT = 2  # 2: the paper's target split (7 seen per training kitchen, actionable first)
-# The paper's walk-back expert: from the destination try these in order, then reverse the walk.
-WALK_BACK_PRIORITY = ("MoveBack", "MoveLeft", "RotateRight")
-REVERSE = {"MoveBack": "MoveAhead", "MoveLeft": "MoveRight", "RotateRight": "RotateLeft"}
-
-
-class TaskError(ValueError):
-    """Bad task input: unknown target, stale or corrupt task file, unreachable destination."""
-
-
-# ------------------------------------------------------------------------------------------------
-# The state graph
-
-
-@dataclass
-class StateGraph:
-    """Every state of one kitchen (start scene) with its transitions, what is visible and its view."""
-
-    kitchen: str
-    world: World
-    cells: list[tuple[int, int]]
-    cell: np.ndarray  # (S,) index into cells
-    heading: np.ndarray  # (S,) degrees
-    pitch: np.ndarray  # (S,) degrees
-    opened: np.ndarray  # (S,) object index of the open receptacle, -1 for none
-    next_state: np.ndarray  # (S, 10) the state each action leads to (ACTIONS order)
-    ok: np.ndarray  # (S, 10) whether the action succeeds (False: a collision or a failed action)
-    visible: list[Visibility]  # (S,)
-    views: np.ndarray  # (S, V, V, 3) uint8 RGB, the view of every state
-    object_vectors: np.ndarray = field(init=False)  # (S, 125) uint8: which object types are visible
-
-    def __post_init__(self) -> None:
-        types = {t: i for i, t in enumerate(object_types())}
-        vectors = np.zeros((self.n_states, len(types)), np.uint8)
-        type_index = [types[o.type] for o in self.world.objects]
-        for s, v in enumerate(self.visible):
-            vectors[s, [type_index[i] for i in v.visible]] = 1
-        self.object_vectors = vectors
-        # observations are views into these arrays: nobody may write through them
-        self.object_vectors.flags.writeable = False
-        if self.views.flags.writeable:
-            self.views.flags.writeable = False
-
-    @property
-    def n_states(self) -> int:
-        return len(self.cell)
-
-    @property
-    def n_closed(self) -> int:
-        return len(self.cells) * len(HEADINGS) * len(PITCHES)
-
-    def pose(self, s: int) -> Pose:
-        return Pose(self.cells[self.cell[s]], int(self.heading[s]), int(self.pitch[s]))
-
-    def state_of(self, pose: Pose, opened: int = -1) -> int:
-        closed = self._closed_index(
-            self.cells.index(pose.cell), HEADINGS.index(pose.heading), PITCHES.index(pose.pitch)
-        )
-        if opened < 0:
-            return closed
-        s = int(self.next_state[closed, OPEN])
-        if self.opened[s] != opened:
-            raise TaskError(f"OpenObject at {pose} does not open object {opened}")
-        return s
-
-    @staticmethod
-    def _closed_index(ci: int, hi: int, pi: int) -> int:
-        return (ci * len(HEADINGS) + hi) * len(PITCHES) + pi
-
-    def visible_mask(self, object_index: int) -> np.ndarray:
-        return np.array([object_index in v.visible for v in self.visible])
-
-
-def build_state_graph(world: World, view_size: int = VIEW_SIZE) -> StateGraph:
-    """Enumerate the states, step the world for every (state, action), record visibility and views."""
-    world.close()
-    cells = list(world.kitchen.reachable)
-    closed = [Pose(c, h, p) for c in cells for h in HEADINGS for p in PITCHES]
-    n_closed = len(closed)
-    vis = visibility(world, closed)
-    views = [_render(world, closed, view_size)]
-    index = {pose: i for i, pose in enumerate(closed)}
-
-    # open twins: one per closed state whose view has an openable receptacle to open
-    twin = np.full(n_closed, -1, np.int64)
-    open_states: list[tuple[int, int]] = []  # (closed state, receptacle index)
-    for s, v in enumerate(vis):
-        if v.open_target is not None:
-            twin[s] = n_closed + len(open_states)
-            open_states.append((s, world.index(v.open_target)))
-    open_vis: list[Visibility | None] = [None] * len(open_states)
-    open_views = np.zeros((len(open_states), view_size, view_size, 3), np.uint8)
-    by_receptacle: dict[int, list[int]] = {}
-    for k, (_, r) in enumerate(open_states):
-        by_receptacle.setdefault(r, []).append(k)
-    for r, ks in by_receptacle.items():
-        world.open(world.objects[r].id)
-        poses = [closed[open_states[k][0]] for k in ks]
-        for k, v in zip(ks, visibility(world, poses)):
-            open_vis[k] = v
-        open_views[ks] = _render(world, poses, view_size)
-        world.close()
-    views.append(open_views)
-
-    n = n_closed + len(open_states)
-    nxt = np.zeros((n, len(ACTIONS)), np.int64)
-    ok = np.zeros((n, len(ACTIONS)), bool)
-    for s, pose in enumerate(closed):
-        for a, action in enumerate(ACTIONS):
-            if a == OPEN:
-                nxt[s, a] = twin[s] if twin[s] >= 0 else s
-                ok[s, a] = twin[s] >= 0
-                continue
-            world.teleport(pose)
-            result = world.step(action)
-            nxt[s, a] = index[result.pose]
-            ok[s, a] = result.success
-    for k, (s, _) in enumerate(open_states):
-        o = n_closed + k
-        nxt[o], ok[o] = nxt[s], ok[s]
-        nxt[o, STOP] = o  # Stop keeps the receptacle open
-        nxt[o, OPEN], ok[o, OPEN] = o, True  # closes, then reopens the same receptacle
-    world.teleport(closed[0])
-
-    cell_index = {c: i for i, c in enumerate(cells)}
-    base = [closed[s] for s, _ in open_states]
-    return StateGraph(
-        kitchen=world.kitchen.name,
-        world=world,
-        cells=cells,
-        cell=np.array([cell_index[p.cell] for p in closed + base], np.int64),
-        heading=np.array([p.heading for p in closed + base], np.int64),
-        pitch=np.array([p.pitch for p in closed + base], np.int64),
-        opened=np.array([-1] * n_closed + [r for _, r in open_states], np.int64),
-        next_state=nxt,
-        ok=ok,
-        visible=list(vis) + open_vis,
-        views=np.concatenate(views),
-    )
-
-
-def _render(world: World, poses: list[Pose], size: int, batch: int = 64) -> np.ndarray:
-    out = np.zeros((len(poses), size, size, 3), np.uint8)
-    for start in range(0, len(poses), batch):
-        out[start : start + batch] = render_views(world, poses[start : start + batch], size)[0]
-    return out
-
-
-# ------------------------------------------------------------------------------------------------
-# The on-disk cache of state graphs (derived data: a corrupt or stale file is rebuilt, never trusted)
-
-
-def cache_dir() -> Path:
-    """$KGNAVBENCH_CACHE, else $XDG_CACHE_HOME/kgnavbench, else ~/.cache/kgnavbench."""
-    if os.environ.get("KGNAVBENCH_CACHE"):
-        return Path(os.environ["KGNAVBENCH_CACHE"])
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "kgnavbench"
-
-
-@cache
-def graph_fingerprint(kitchen: str) -> str:
-    """Changes whenever the kitchen file or the code that makes states, transitions and views does."""
-    h = hashlib.sha256(f"graph-{GRAPH_VERSION}".encode())
-    h.update((KITCHEN_DIR / f"{kitchen}.json.gz").read_bytes())
-    for stage in ("world.py", "render.py"):
-        h.update((Path(__file__).parent / stage).read_bytes())
-    return h.hexdigest()[:16]
-
-
-def _cache_paths(kitchen: str, view_size: int, root: Path) -> tuple[Path, Path]:
-    stem = root / f"{kitchen}-{graph_fingerprint(kitchen)}"
-    return stem.with_suffix(".graph.npz"), Path(f"{stem}.views{view_size}.npy")
-
-
-def save_graph(graph: StateGraph, root: Path) -> None:
-    graph_path, views_path = _cache_paths(graph.kitchen, graph.views.shape[1], root)
-    vis_ptr = np.cumsum([0] + [len(v.visible) for v in graph.visible])
-    open_target = [graph.world.index(v.open_target) if v.open_target else -1 for v in graph.visible]
-    arrays = dict(
-        cells=np.array(graph.cells, np.int64),
-        cell=graph.cell,
-        heading=graph.heading,
-        pitch=graph.pitch,
-        opened=graph.opened,
-        next=graph.next_state,
-        ok=graph.ok,
-        vis_ptr=vis_ptr,
-        vis_obj=np.array([i for v in graph.visible for i in v.visible], np.int64),
-        vis_pixels=np.array([p for v in graph.visible for p in v.pixels], np.int64),
-        open_target=np.array(open_target, np.int64),
-    )
-    atomic_write(views_path, lambda f: np.save(f, graph.views))
-    atomic_write(graph_path, lambda f: np.savez(f, **arrays))
-
-
-def load_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = None) -> StateGraph | None:
-    """The cached graph, or None when there is none (or it is unreadable: then it gets rebuilt)."""
-    graph_path, views_path = _cache_paths(kitchen, view_size, root or cache_dir())
-    if not (graph_path.exists() and views_path.exists()):
-        return None
-    try:
-        with np.load(graph_path) as z:
-            a = {k: z[k] for k in z.files}
-        views = np.load(views_path, mmap_mode="r")
-        world = World(kitchen)
-        ptr = a["vis_ptr"]
-        visible = [
-            Visibility(
-                tuple(int(i) for i in a["vis_obj"][ptr[s] : ptr[s + 1]]),
-                tuple(int(p) for p in a["vis_pixels"][ptr[s] : ptr[s + 1]]),
-                world.objects[t].id if t >= 0 else None,
-            )
-            for s, t in enumerate(a["open_target"])
-        ]
-        graph = StateGraph(
-            kitchen=kitchen,
-            world=world,
-            cells=[(int(x), int(z)) for x, z in a["cells"]],
-            cell=a["cell"],
-            heading=a["heading"],
-            pitch=a["pitch"],
-            opened=a["opened"],
-            next_state=a["next"],
-            ok=a["ok"],
-            visible=visible,
-            views=views,
-        )
-        if (
-            views.shape != (graph.n_states, view_size, view_size, 3)
-            or graph.next_state.shape[0] != graph.n_states
-        ):
-            raise ValueError(f"views {views.shape} do not match {graph.n_states} states")
-        return graph
-    except Exception as e:  # noqa: BLE001 - any unreadable cache file is rebuilt, not trusted
-        print(
-            f"kgnavbench: cached state graph of {kitchen} is unreadable ({e}); rebuilding it", file=sys.stderr
-        )
-        return None
-
-
-def state_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = None) -> StateGraph:
-    """The state graph of a kitchen's start scene, from the cache or built (and cached) now."""
-    check_name(kitchen)
-    root = root or cache_dir()
-    graph = load_graph(kitchen, view_size, root)
-    if graph is None:
-        try:  # fail before a minute of building, not after
-            root.mkdir(parents=True, exist_ok=True)
-            graph = build_state_graph(World(kitchen), view_size)
-            save_graph(graph, root)
-        except OSError as e:
-            raise TaskError(
-                f"cannot write the state-graph cache in {root} ({e.strerror or e}); "
-                "set KGNAVBENCH_CACHE to a writable folder"
-            ) from e
-    return graph
-
-
-def _build_one(job: tuple[str, int, str]) -> tuple[str, float, int]:
-    kitchen, view_size, root = job
-    start = time.perf_counter()
-    graph = state_graph(kitchen, view_size, Path(root))
-    return kitchen, time.perf_counter() - start, graph.n_states
-
-
-def build_all(
-    kitchens=KITCHEN_NAMES, view_size: int = VIEW_SIZE, root: Path | None = None, workers: int | None = None
-):
-    """Make sure every kitchen's graph is cached; one process per core. Yields (kitchen, s, states)."""
-    root = root or cache_dir()
-    jobs = [(k, view_size, str(root)) for k in kitchens]
-    workers = workers or min(len(jobs), os.cpu_count() or 1)
-    if workers <= 1:
-        yield from map(_build_one, jobs)
-        return
-    with ProcessPoolExecutor(workers) as pool:
-        yield from pool.map(_build_one, jobs)
-
-
-# ------------------------------------------------------------------------------------------------
-# Shortest paths and experts
-
-
-def bfs_distances(next_state: np.ndarray, goal: np.ndarray) -> np.ndarray:
-    """Fewest actions from every state to any goal state (-1: no path). Multi-source BFS on the reversed
-    graph, one vectorised frontier step per distance level."""
-    dist = np.full(len(next_state), -1, np.int64)
-    frontier = np.asarray(goal, bool).copy()
-    dist[frontier] = 0
-    level = 0
-    while frontier.any():
-        level += 1
-        frontier = frontier[next_state].any(axis=1) & (dist < 0)
-        dist[frontier] = level
-    return dist
-
-
-def goal_mask(n_states: int, goal_states) -> np.ndarray:
-    mask = np.zeros(n_states, bool)
-    mask[list(goal_states)] = True
-    return mask
-
-
-def nearer_actions(dist: np.ndarray, dist_after: np.ndarray) -> np.ndarray:
-    """(N, A) bool: the actions of states at BFS distance `dist` (N,) that lead one step nearer the goal
-    (`dist_after` (N, A): the distance after each action); none on a goal or where it cannot be
-    reached."""
-    return (dist_after == (dist - 1)[:, None]) & (dist > 0)[:, None]
-
-
-def optimal_action_mask(dist: np.ndarray, dist_after: np.ndarray) -> np.ndarray:
-    """Every BFS-optimal action (N, 10): Stop on a goal state, else each action one step nearer."""
-    optimal = nearer_actions(dist, dist_after)
-    optimal[dist == 0, STOP] = True
-    return optimal
-
-
-def expert_actions(next_state: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """The BFS-optimal action per state: Stop on a goal state, else the first action (paper order) whose
-    next state is one step nearer; -1 where the goal cannot be reached."""
-    nearer = nearer_actions(dist, dist[next_state])
-    best = np.where(nearer.any(1), nearer.argmax(1), -1)
-    best[dist == 0] = STOP
-    return best
-
-
-def shortest_trajectory(next_state: np.ndarray, dist: np.ndarray, start: int) -> list[int]:
-    """BFS-optimal actions from start to the goal, ending with Stop."""
-    if dist[start] < 0:
-        raise TaskError(f"state {start} cannot reach the goal")
-    best = expert_actions(next_state, dist)
-    s, actions = start, []
-    while dist[s] > 0:
-        actions.append(int(best[s]))
-        s = int(next_state[s, best[s]])
-    return actions + [STOP]
-
-
-def walk_back_trajectory(graph: StateGraph, destination: int, n_steps: int) -> tuple[int, list[int]]:
-    """The paper's expert: walk n_steps back from the destination trying MoveBack, MoveLeft, RotateRight
-    in that order (the first that succeeds is taken), then reverse the walk (MoveAhead, MoveRight,
-    RotateLeft) so it ends at the destination; OpenObject first for an open destination, Stop last.
-    Returns (start state, actions)."""
-    opened = graph.opened[destination] >= 0
-    s = graph.state_of(graph.pose(destination)) if opened else destination
-    walk = []
-    for _ in range(n_steps):
-        for name in WALK_BACK_PRIORITY:
-            a = ACTIONS.index(name)
-            if graph.ok[s, a]:
-                walk.append(name)
-                s = int(graph.next_state[s, a])
-                break
-    actions = [ACTIONS.index(REVERSE[name]) for name in reversed(walk)]
-    return s, actions + ([OPEN] if opened else []) + [STOP]
 
 
 # ------------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Stage 13 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
+"""Stage 14 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
 imitation learning (IL), target skill extension (TSE), checkpoints, logs and resumption.
 
 It stands on the stages before it: the run directory, options and checkpoints (kgnavbench/runs.py),
@@ -36,6 +36,7 @@ from . import distributed, encoder, models
 from .agent import Model, detached, keep_rows, run_episodes
 from .env import reward
 from .files import atomic_write
+from .graph import STOP
 from .kitchens import KITCHEN_NAMES
 from .losses import (
     Sequences,
@@ -52,10 +53,7 @@ from .losses import (
     subtarget_types,
 )
 from .runs import CHECKPOINT_FORMAT, Run, TrainError, TrainOptions, load_checkpoint, save_checkpoint
-from .tasks import (
-    STOP,
-    load_task_file,
-)
+from .tasks import load_task_file
 from .vecenv import CURRICULUM_REACH, Navigators, StateSpace, build_space
 
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions

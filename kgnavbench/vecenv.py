@@ -1,4 +1,4 @@
-"""Stage 7 — vecenv: navigators in many kitchens as one batched simulator, and its Gymnasium faces.
+"""Stage 8 — vecenv: navigators in many kitchens as one batched simulator, and its Gymnasium faces.
 
     import gymnasium as gym
     import kgnavbench  # registers the ids below
@@ -60,9 +60,10 @@ from gymnasium.vector.utils import batch_space
 
 from .encoder import FEATURE_DIM, N_TYPES, encoder_feature_stats, feature_bounds, standardize, state_features
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, transition
+from .graph import VIEW_SIZE
 from .kitchens import KITCHEN_NAMES, check_name, object_types
 from .render import top_down_map
-from .tasks import VIEW_SIZE, KitchenTasks, load_task_file, load_tasks
+from .tasks import KitchenTasks, load_task_file, load_tasks
 from .world import ACTIONS
 
 SPLIT_NAMES = ("train", "val", "test")

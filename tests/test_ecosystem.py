@@ -13,7 +13,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import kgnavbench  # noqa: F401 - registers the Gymnasium ids
 from kgnavbench.env import EnvError, parallel_env
-from kgnavbench.tasks import STOP
+from kgnavbench.graph import STOP
 
 
 @pytest.fixture(autouse=True)

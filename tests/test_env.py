@@ -14,8 +14,9 @@ from kgnavbench.env import (
     NavigationEnv,
     parallel_env,
 )
+from kgnavbench.graph import OPEN, STOP
 from kgnavbench.kitchens import object_types
-from kgnavbench.tasks import MIN_START_DISTANCE, OPEN, START_PITCH, STOP
+from kgnavbench.tasks import MIN_START_DISTANCE, START_PITCH
 from kgnavbench.world import ACTIONS, Pose
 
 EGG = "Egg|-02.04|+00.81|+01.24"

@@ -9,6 +9,7 @@ import textwrap
 
 import pytest
 
+from kgnavbench import graph as graph_stage
 from kgnavbench import kitchens, tasks
 from kgnavbench.cli import main
 
@@ -221,8 +222,8 @@ def test_a_runs_folder_that_cannot_be_written(capsys, tmp_path, floorplan1_tasks
 
 def test_json_output_stays_json_when_the_cache_is_rebuilt(capsys, tmp_path, monkeypatch, floorplan1_tasks):
     """A damaged cache file's notice goes to stderr; stdout is exactly one JSON document."""
-    root = tasks.cache_dir()
-    graph_path, _ = tasks._cache_paths("FloorPlan1", tasks.VIEW_SIZE, root)
+    root = graph_stage.cache_dir()
+    graph_path, _ = graph_stage._cache_paths("FloorPlan1", graph_stage.VIEW_SIZE, root)
     saved = graph_path.read_bytes()
     try:
         graph_path.write_bytes(b"garbage")

@@ -20,6 +20,7 @@ from kgnavbench.encoder import (
     load_encoder,
     state_features,
 )
+from kgnavbench.graph import state_graph
 from kgnavbench.models import (
     CoVisibility,
     ModelConfig,
@@ -28,7 +29,6 @@ from kgnavbench.models import (
     masked_softmax,
     normalized_adjacency,
 )
-from kgnavbench.tasks import state_graph
 
 N_TYPES = 125
 ALL_CONFIGS = [

@@ -9,29 +9,32 @@ from collections import Counter
 import numpy as np
 import pytest
 
+from kgnavbench import graph as graph_stage
 from kgnavbench import tasks
+from kgnavbench.graph import (
+    OPEN,
+    STOP,
+    TaskError,
+    bfs_distances,
+    expert_actions,
+    goal_mask,
+    load_graph,
+    shortest_trajectory,
+    walk_back_trajectory,
+)
 from kgnavbench.kitchens import KITCHEN_NAMES
 from kgnavbench.tasks import (
     EPISODES_PER_TARGET,
     MIN_START_DISTANCE,
-    OPEN,
     SEEN_TARGETS_PER_KITCHEN,
     START_PITCH,
-    STOP,
     TASKS_FORMAT,
     Target,
-    TaskError,
-    bfs_distances,
-    expert_actions,
     find_targets,
-    goal_mask,
     kitchen_task_record,
-    load_graph,
     load_task_file,
     seen_targets,
-    shortest_trajectory,
     split_kitchens,
-    walk_back_trajectory,
 )
 from kgnavbench.world import ACTIONS, Pose, World
 
@@ -398,8 +401,8 @@ def test_second_call_loads_the_graph_from_disk(graph, monkeypatch):
     def no_build(*args, **kwargs):
         raise AssertionError("the cached graph should have been loaded, not rebuilt")
 
-    monkeypatch.setattr(tasks, "build_state_graph", no_build)
-    loaded = tasks.state_graph("FloorPlan1")
+    monkeypatch.setattr(graph_stage, "build_state_graph", no_build)
+    loaded = graph_stage.state_graph("FloorPlan1")
     assert loaded is not graph
     assert isinstance(loaded.views, np.memmap)  # memory-mapped from the cache file
     _assert_same_graph(loaded, graph)
@@ -408,8 +411,8 @@ def test_second_call_loads_the_graph_from_disk(graph, monkeypatch):
 @pytest.fixture
 def cache_copy(graph, tmp_path):
     """A private copy of FloorPlan1's cache files, safe to corrupt."""
-    sources = tasks._cache_paths("FloorPlan1", graph.views.shape[1], tasks.cache_dir())
-    copies = tasks._cache_paths("FloorPlan1", graph.views.shape[1], tmp_path)
+    sources = graph_stage._cache_paths("FloorPlan1", graph.views.shape[1], graph_stage.cache_dir())
+    copies = graph_stage._cache_paths("FloorPlan1", graph.views.shape[1], tmp_path)
     for source, copy in zip(sources, copies):
         assert source.exists()
         shutil.copyfile(source, copy)
@@ -451,14 +454,14 @@ def test_corrupt_cache_is_rebuilt_with_the_same_result(graph, cache_copy, monkey
     root, (graph_path, _) = cache_copy
     graph_path.write_bytes(b"\x00garbage\xff" * 1000)
     builds = []
-    real_build = tasks.build_state_graph
+    real_build = graph_stage.build_state_graph
 
     def counting_build(*args, **kwargs):
         builds.append(args)
         return real_build(*args, **kwargs)
 
-    monkeypatch.setattr(tasks, "build_state_graph", counting_build)
-    rebuilt = tasks.state_graph("FloorPlan1", root=root)
+    monkeypatch.setattr(graph_stage, "build_state_graph", counting_build)
+    rebuilt = graph_stage.state_graph("FloorPlan1", root=root)
     assert len(builds) == 1
     out, err = capsys.readouterr()
     assert "unreadable" in err and not out  # stdout stays clean for --json
@@ -470,10 +473,10 @@ def test_corrupt_cache_is_rebuilt_with_the_same_result(graph, cache_copy, monkey
 
 def test_cache_dir_follows_the_environment(monkeypatch, tmp_path):
     monkeypatch.setenv("KGNAVBENCH_CACHE", str(tmp_path / "k"))
-    assert tasks.cache_dir() == tmp_path / "k"
+    assert graph_stage.cache_dir() == tmp_path / "k"
     monkeypatch.delenv("KGNAVBENCH_CACHE")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    assert tasks.cache_dir() == tmp_path / "xdg" / "kgnavbench"
+    assert graph_stage.cache_dir() == tmp_path / "xdg" / "kgnavbench"
 
 
 # ------------------------------------------------------------------------------------------------

@@ -19,8 +19,8 @@ import torch
 
 from kgnavbench import agent, losses, models, runs, train, vecenv
 from kgnavbench.cli import main
+from kgnavbench.graph import STOP
 from kgnavbench.kitchens import object_types
-from kgnavbench.tasks import STOP
 
 ROOT = Path(__file__).resolve().parent.parent
 # what makes a training run take seconds: few agents, short rollouts, small networks, one validation

@@ -12,7 +12,7 @@ from gymnasium.utils.env_checker import check_env
 import kgnavbench  # noqa: F401 - registers the Gymnasium ids
 from kgnavbench import vecenv
 from kgnavbench.env import parallel_env
-from kgnavbench.tasks import STOP
+from kgnavbench.graph import STOP
 
 
 @pytest.fixture(scope="module")
