@@ -32,7 +32,7 @@ def batch_inputs(cfg: ModelConfig, b: int) -> dict:
         target=torch.rand(b, FEATURE_DIM, generator=g),
         view_objects=objects[0],
         target_objects=objects[1],
-        adjacency=torch.maximum(adjacency, adjacency.T).fill_diagonal_(0),
+        graph=torch.maximum(adjacency, adjacency.T).fill_diagonal_(0),
         scene=torch.randint(0, cfg.n_scenes, (b,), generator=g),
     )
 

@@ -109,7 +109,7 @@ class Model:
                 r_t,
                 r_g,
                 hidden,
-                adjacency=graph,
+                graph=graph,
                 scene=None if scene is None else self.tensor(scene),
                 target_rows=target_rows,
             )

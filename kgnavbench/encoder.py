@@ -334,7 +334,7 @@ def pretrain_encoder(
     schedule = torch.optim.lr_scheduler.LambdaLR(
         optimiser, lambda s: min(1.0, (s + 1) / 100) * 0.5 * (1 + math.cos(math.pi * min(s, total) / total))
     )
-    history, seen = [], 0
+    history, images = [], 0
     train_start = time.perf_counter()
     for epoch in range(epochs):
         order = np.random.default_rng([seed, epoch]).permutation(len(train.views))[:n]
@@ -359,11 +359,11 @@ def pretrain_encoder(
             loss.backward()
             optimiser.step()
             schedule.step()
-            seen += len(idx)
+            images += len(idx)
             running += loss.item()
             if time.perf_counter() - last_print > 15 or b == steps_per_epoch - 1:
                 last_print = time.perf_counter()
-                rate = seen / (last_print - train_start)
+                rate = images / (last_print - train_start)
                 log(
                     f"  epoch {epoch + 1}/{epochs}  batch {b + 1}/{steps_per_epoch}  "
                     f"loss {running / (b + 1):.4f}  {rate:,.0f} images/s"
@@ -394,7 +394,7 @@ def pretrain_encoder(
         "batch_size": batch_size,
         "lr": lr,
         "shift": shift,
-        "images": seen,
+        "images": images,
         "kitchens": kitchens,
         "val_kitchens": val_kitchens,
         "view_fingerprints": {k: graph_fingerprint(k) for k in kitchens + val_kitchens},
@@ -404,7 +404,7 @@ def pretrain_encoder(
         "torch": str(torch.__version__),
     }
     log(
-        f"pretrain: {seen} images in {seconds:.1f} s ({seen / max(seconds, 1e-9):,.0f} images/s); on "
+        f"pretrain: {images} images in {seconds:.1f} s ({images / max(seconds, 1e-9):,.0f} images/s); on "
         f"{final['views']} validation views: mAP {final['mAP']:.4f} (random init {random_init['mAP']:.4f}), "
         f"micro-F1 {final['micro_f1']:.4f} (random init {random_init['micro_f1']:.4f}), pitch accuracy "
         f"{final['pitch_accuracy']:.4f}"

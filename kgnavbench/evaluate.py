@@ -66,9 +66,11 @@ class EvalError(ValueError):
 # The protocol
 
 
-def column_of(split: str, seen: bool) -> str:
+def column_of(split: str, seen_target: bool) -> str:
+    """Table I's column of a target: its kitchen's split and, in a training kitchen, whether it is a
+    training (seen) target."""
     if split == "train":
-        return "seen_seen" if seen else "seen_unseen"
+        return "seen_seen" if seen_target else "seen_unseen"
     if split == "test":
         return "unseen_kitchens"
     return "validation"

@@ -359,7 +359,7 @@ def _placements(name: str, objects: list[dict], thor: Path) -> list[list[list[fl
         if o["pickupable"]:
             by_type.setdefault(o["type"], []).append(i)
     records: list[list[list[float]]] = []
-    seen: set = set()
+    kept: set = set()  # the placements already recorded
 
     def add(poses: list[dict], match_by_type: bool):
         rec, used = [], set()
@@ -383,8 +383,8 @@ def _placements(name: str, objects: list[dict], thor: Path) -> list[list[list[fl
             rec.append([i, _r(pos["x"]), _r(pos["y"]), _r(pos["z"]), _r(rot["y"] % 360)])
         rec.sort()
         key = json.dumps(rec)
-        if rec and key not in seen:
-            seen.add(key)
+        if rec and key not in kept:
+            kept.add(key)
             records.append(rec)
 
     alfred, rearrange = _placement_sources(thor)
@@ -441,10 +441,10 @@ def compile_kitchen(name: str, thor_data: Path | str = DEFAULT_THOR_DATA) -> dic
         return parents[0] if parents else None
 
     def hidden(m: dict) -> bool:
-        seen = set()
+        visited = set()
         p = parent_of(m)
-        while p is not None and p not in seen:
-            seen.add(p)
+        while p is not None and p not in visited:
+            visited.add(p)
             pm = meta[p]
             if pm["openable"] and not pm["isOpen"]:
                 return True

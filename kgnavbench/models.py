@@ -213,10 +213,10 @@ class KnowledgeGraph(nn.Module):
         return GraphTerms(node_features, base, d1, d2, scores)
 
     def forward(
-        self, r_t: Tensor, r_g: Tensor, adjacency: Tensor | GraphTerms | None
+        self, r_t: Tensor, r_g: Tensor, graph: Tensor | GraphTerms | None
     ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        """r_t, r_g: (B, 125) 0/1 float; adjacency: the accumulated graph's (125, 125) adjacency or
-        its `graph_terms`. Returns the pooled Q (B, d), attention (B, 125) or None, and the node
+        """r_t, r_g: (B, 125) 0/1 float; graph: the accumulated graph, as its (125, 125) adjacency or
+        as its `graph_terms` (None per step). Returns the pooled Q (B, d), attention (B, 125) or None, and the node
         features H (125, d) of the accumulated graph (None per step)."""
         r_z = torch.maximum(r_t, r_g)
         both, t_only, g_only = r_t * r_g, r_t * (1 - r_g), (1 - r_t) * r_g
@@ -230,11 +230,11 @@ class KnowledgeGraph(nn.Module):
             if self.attention:  # (B,) each: one score for all R_z nodes of a kind in a sample
                 s_t, s_g, s_both, s_none = (s[:, None] for s in self.kind_scores(base, d1, d2))
         else:
-            if adjacency is None:
+            if graph is None:
                 raise ModelError(
                     "kg_graph='accumulated' needs the (125, 125) adjacency of the co-visibility graph"
                 )
-            terms = adjacency if isinstance(adjacency, GraphTerms) else self.graph_terms(adjacency)
+            terms = graph if isinstance(graph, GraphTerms) else self.graph_terms(graph)
             node_features, base, d1, d2 = terms.node_features, terms.base, terms.d1, terms.d2
             if self.attention:
                 s_t, s_g, s_both, s_none = terms.scores
@@ -301,8 +301,8 @@ class ActorCritic(nn.Module):
             self.scene_value, self.scene_value_bias = uniform(s, h, 1, fan_in=h), uniform(s, 1, fan_in=h)
 
     def graph_terms(self, adjacency: Tensor | None) -> GraphTerms | Tensor | None:
-        """What forward's `adjacency` may be instead of the adjacency: the accumulated graph's
-        per-update terms, computed once (`GraphTerms`); the adjacency itself where there are none."""
+        """What forward's `graph` may be instead of the adjacency: the accumulated graph's per-update
+        terms, computed once (`GraphTerms`); the adjacency itself where there are none."""
         if self.kg is None or self.kg.per_step or adjacency is None:
             return adjacency
         return self.kg.graph_terms(adjacency)
@@ -331,16 +331,16 @@ class ActorCritic(nn.Module):
         view_objects,
         target_objects,
         state=None,
-        adjacency=None,
+        graph=None,
         scene=None,
         target_rows=None,
     ):
-        joint, extras = self.encode(view, target, view_objects, target_objects, adjacency, target_rows)
+        joint, extras = self.encode(view, target, view_objects, target_objects, graph, target_rows)
         logits, value, state = self.act(joint, state, scene)
         return logits, value, state, extras
 
     def encode(
-        self, view, target, view_objects, target_objects, adjacency=None, target_rows=None
+        self, view, target, view_objects, target_objects, graph=None, target_rows=None
     ) -> tuple[Tensor, dict]:
         """The part of the network that does not recur over time: the siamese and fusion layers (and
         the knowledge graph's pooled Q) -> the joint input (B, J) of the LSTM or the scene layer. A
@@ -378,7 +378,7 @@ class ActorCritic(nn.Module):
         if self.kg is not None:
             r_t = (view_objects > 0).to(self.kg.w0.dtype)
             r_g = (target_objects > 0).to(self.kg.w0.dtype)
-            pooled, attention, node_features = self.kg(r_t, r_g, adjacency)
+            pooled, attention, node_features = self.kg(r_t, r_g, graph)
             joint = torch.cat([joint, pooled.to(joint.dtype)], 1)
         return joint, {"attention": attention, "node_features": node_features}
 

@@ -153,10 +153,10 @@ def split_kitchens(actionable_counts: dict[str, int]) -> dict[str, list[str]]:
 def seen_targets(kitchen: str, targets: list[Target]) -> set[str]:
     """The paper's training targets of a training kitchen: every actionable target, then static targets
     by a shuffle seeded with the kitchen name until there are SEEN_TARGETS_PER_KITCHEN."""
-    seen = {t.object_id for t in targets if t.kind == "actionable"}
+    actionable = {t.object_id for t in targets if t.kind == "actionable"}
     static = sorted(t.object_id for t in targets if t.kind == "static")
     random.Random(kitchen).shuffle(static)
-    return seen | set(static[: max(0, SEEN_TARGETS_PER_KITCHEN - len(seen))])
+    return actionable | set(static[: max(0, SEEN_TARGETS_PER_KITCHEN - len(actionable))])
 
 
 def startable(graph: StateGraph) -> np.ndarray:
@@ -184,7 +184,7 @@ def kitchen_task_record(graph: StateGraph, training: bool) -> dict:
     """One kitchen's entry of the task file: its targets, seen or not, and their fixed episodes. Only a
     training kitchen has seen targets; every target of a validation or test kitchen is unseen."""
     targets = find_targets(graph)
-    seen = seen_targets(graph.kitchen, targets) if training else set()
+    training_ids = seen_targets(graph.kitchen, targets) if training else set()
     records, dropped = [], []
     for t in targets:
         starts = episode_starts(graph, t)
@@ -196,7 +196,7 @@ def kitchen_task_record(graph: StateGraph, training: bool) -> dict:
                 "object": t.object_id,
                 "type": t.type,
                 "kind": t.kind,
-                "seen": t.object_id in seen,
+                "seen": t.object_id in training_ids,
                 "destination": t.destination,
                 "starts": starts,
             }

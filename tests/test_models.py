@@ -71,7 +71,7 @@ def inputs(cfg: ModelConfig, b: int = 6, seed: int = 0) -> dict:
         target=target,
         view_objects=view_objects,
         target_objects=target_objects,
-        adjacency=random_adjacency(seed) if cfg.kg_graph == "accumulated" else None,
+        graph=random_adjacency(seed) if cfg.kg_graph == "accumulated" else None,
         scene=torch.arange(b) % cfg.n_scenes,
     )
 
@@ -162,9 +162,9 @@ def test_closed_form_kg_branch_equals_the_literal_equations(kg, graph):
                 p.uniform_(-0.5, 0.5)
     x = inputs(cfg, b=8, seed=3)
     r_t, r_g = x["view_objects"].float(), x["target_objects"].float()
-    fast, attention, node_features = branch(r_t, r_g, x["adjacency"])
+    fast, attention, node_features = branch(r_t, r_g, x["graph"])
     slow, alpha = literal_kg(
-        branch, r_t, r_g, x["adjacency"], graph == "per_step", kg == "attention", all_nodes
+        branch, r_t, r_g, x["graph"], graph == "per_step", kg == "attention", all_nodes
     )
     assert torch.allclose(fast, slow, atol=1e-5, rtol=1e-4)
     if kg == "attention":
@@ -190,13 +190,13 @@ def test_graph_terms_computed_once_equal_the_per_step_computation(kg):
     cfg = ModelConfig(kg=kg)
     model = make_model(cfg)
     steps = [inputs(cfg, b=6, seed=s) for s in (1, 2, 3)]
-    adjacency = steps[0]["adjacency"]
+    adjacency = steps[0]["graph"]
     results = []
     for shared in (False, True):
         model.zero_grad()
         graph = model.graph_terms(adjacency) if shared else adjacency
         assert isinstance(graph, models.GraphTerms) == shared
-        outs = [model(**{**x, "adjacency": graph}, state=None) for x in steps]
+        outs = [model(**{**x, "graph": graph}, state=None) for x in steps]
         loss = sum(logits.square().sum() + value.sum() for logits, value, _, _ in outs)
         loss.backward()
         grads = [p.grad.clone() for p in model.kg.parameters()]
@@ -316,7 +316,7 @@ def test_ff_scene_heads_pick_each_samples_scene():
     x["scene"] = torch.tensor([2, 0, 1, 2, 0, 0, 1])
     logits, value, _, _ = model(**x, state=None)
     for i in range(7):  # each sample alone gives the same answer as inside the mixed batch
-        one = {k: (v[i : i + 1] if k not in ("adjacency",) and v is not None else v) for k, v in x.items()}
+        one = {k: (v[i : i + 1] if k not in ("graph",) and v is not None else v) for k, v in x.items()}
         li, vi, _, _ = model(**one, state=None)
         assert torch.allclose(li, logits[i : i + 1], atol=1e-6) and torch.allclose(
             vi, value[i : i + 1], atol=1e-6
@@ -341,7 +341,7 @@ def test_make_model_names_the_bad_field():
             make_model(ModelConfig(**{field: value}))
     with pytest.raises(ModelError, match="adjacency"):
         cfg = ModelConfig(kg="mean")
-        make_model(cfg)(**dict(inputs(cfg), adjacency=None), state=None)
+        make_model(cfg)(**dict(inputs(cfg), graph=None), state=None)
 
 
 def test_covisibility_counts_pairs_seen_together():
