@@ -216,8 +216,8 @@ class KnowledgeGraph(nn.Module):
         self, r_t: Tensor, r_g: Tensor, graph: Tensor | GraphTerms | None
     ) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """r_t, r_g: (B, 125) 0/1 float; graph: the accumulated graph, as its (125, 125) adjacency or
-        as its `graph_terms` (None per step). Returns the pooled Q (B, d), attention (B, 125) or None, and the node
-        features H (125, d) of the accumulated graph (None per step)."""
+        as its `graph_terms` (None per step). Returns the pooled Q (B, d), attention (B, 125) or None,
+        and the node features H (125, d) of the accumulated graph (None per step)."""
         r_z = torch.maximum(r_t, r_g)
         both, t_only, g_only = r_t * r_g, r_t * (1 - r_g), (1 - r_t) * r_g
         if self.per_step:

@@ -54,7 +54,7 @@ from .losses import (
 )
 from .runs import CHECKPOINT_FORMAT, Run, TrainError, TrainOptions, load_checkpoint, save_checkpoint
 from .tasks import load_task_file
-from .vecenv import CURRICULUM_REACH, Navigators, StateSpace, build_space
+from .vecenv import CURRICULUM_REACH, NavigationVectorEnv, StateSpace, build_space
 
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
 METRICS = (
@@ -111,7 +111,6 @@ class Trainer:
         # every rank starts from the same weights (above); its agents draw from generators of their own
         # (rank 0's are a single process's)
         seed = run.seed if ranks.rank == 0 else run.seed + 1_000_003 * ranks.rank
-        self.rng = np.random.default_rng(seed)
         self.generator = torch.Generator(self.device).manual_seed(seed)
         # training draws nothing from Python's `random`, but a checkpoint saves its state: seeded, two
         # identical runs write identical checkpoints (and a plugin that uses it stays reproducible)
@@ -127,14 +126,22 @@ class Trainer:
         if not len(mine):
             raise TrainError(f"{self.total_agents} agents cannot be shared by {ranks.world} ranks")
         n_agents = len(mine)
-        self.nav = Navigators(
+        # the public vector env without autoreset: a finished agent's next episode is drawn after the
+        # TSE has read where it ended. Its generator is the trainer's: episodes, TSE sub-targets and
+        # their batches draw from one stream, which the checkpoint saves.
+        self.envs = NavigationVectorEnv.over(
             self.space,
             kitchen[mine],
-            stop_ends=options.stop_ends_from == 0,
             assigned=None if assigned is None else assigned[mine],
+            stop_ends=options.stop_ends_from == 0,
+            max_steps=options.episode_cap,
+            autoreset=False,
         )
-        self.cap = options.episode_cap
-        self.nav.draw(np.arange(n_agents), self.rng, self.cap, self.reach())
+        self.envs.reset(seed=seed, options={"reach": self.reach()})
+        self.rng = self.envs.np_random
+        # the simulator's state: the trainer (not a plugin) indexes its feature tables, the TSE and the
+        # co-visibility counts by the agents' true states
+        self.nav = self.envs.navigators
         self.hidden = net.initial_state(n_agents, self.device)
         self.history = np.repeat(self.nav.state[:, None], self.model_config.history, 1) if self.ff else None
         # TSE: the sub-targets sampled per episode; a rollout hands the windows of the episodes that
@@ -167,7 +174,7 @@ class Trainer:
         loss = torch.zeros((), device=self.device)
         windows: list = []  # TSE: the sub-target windows of the episodes that end in this rollout
         imitate = self.il and (not self.rl or self.frames < self.opts.il_frames)
-        self.nav.stop_ends = self.opts.stop_ends_from is not None and self.frames >= self.opts.stop_ends_from
+        self.envs.stop_ends = self.opts.stop_ends_from is not None and self.frames >= self.opts.stop_ends_from
         if self.rl or self.dagger:
             rl_loss, il_loss, windows = self.rollout(graph, imitate and self.dagger)
             if self.rl:
@@ -231,7 +238,7 @@ class Trainer:
                 a = action.cpu().numpy()
                 actions[t] = a
                 before = nav.state.copy()
-                r, terminated, truncated = nav.step(a)
+                _, r, terminated, truncated, infos = self.envs.step(a)
                 reached[t] = nav.state
                 if opts.wrong_stop_penalty:
                     r = r - opts.wrong_stop_penalty * ((a == STOP) & ~nav.success)
@@ -246,12 +253,13 @@ class Trainer:
                 self.tick += 1
                 finished = np.flatnonzero(done)
                 if len(finished):
+                    ended = infos["final_info"]
                     self.stats["episodes"] += len(finished)
-                    self.stats["successes"] += int(nav.success[finished].sum())
-                    self.stats["returns"] += float(nav.episode_return[finished].sum())
+                    self.stats["successes"] += int(ended["success"][finished].sum())
+                    self.stats["returns"] += float(ended["episode_return"][finished].sum())
                     if opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
                         windows += self.tse.finish(finished, self.tick)
-                    nav.draw(finished, self.rng, self.cap, self.reach())
+                    self.envs.reset(options={"reset_mask": done, "reach": self.reach()})
                 hidden = keep_rows(hidden, self.model.tensor(~done).float())
                 if self.ff:
                     self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)

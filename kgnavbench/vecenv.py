@@ -38,14 +38,19 @@ Autoreset (vector env): same step (gymnasium's AutoresetMode.SAME_STEP). A finis
     next episode inside the step that ended it: the returned observation is the new episode's first;
     infos["final_obs"][i] (with mask infos["_final_obs"]) is the last one of the old, and
     infos["final_info"] holds its success, episode_length, path_length, shortest_path, collisions and
-    episode_return, each with its `_key` mask.
+    episode_return, each with its `_key` mask. With autoreset=False (AutoresetMode.DISABLED) the step
+    that ends an episode returns its last observation and the same final_info; the finished sub-envs
+    wait for `reset(options={"reset_mask": mask})` (stepping them before is an error).
+    reset(options={"reach": N}) draws starts at most N actions from the destination (a curriculum).
 Infos: every step "kitchen" and "target" (object id) per sub-env. Nothing privileged: no state index,
     no expert action (the PettingZoo env's infos keep those for the shipped plugins and the oracle).
 
 Inside: `StateSpace` concatenates the kitchens' state graphs (global state = kitchen offset + local
 state) with per-target goal and distance tables; `Navigators` steps every agent at once as array
-gathers. The trainer (kgnavbench/train.py) drives `Navigators` directly, because its TSE reads each
-agent's state between the step and the next episode's draw.
+gathers. The trainer (kgnavbench/train.py) steps this vector env without autoreset
+(`NavigationVectorEnv.over`: its own space, kitchens per sub-env and one target per sub-env): its TSE
+reads each agent's state between the step and the reset, and it alone, being the library's trainer,
+reads the states themselves (`envs.navigators`) to index its feature tables.
 """
 
 from __future__ import annotations
@@ -368,12 +373,17 @@ class _Navigation:
             raise VecEnvError(f"unknown target set {targets!r}; choose one of {', '.join(TARGET_SETS)}")
         if success_rule not in SUCCESS_RULES:
             raise VecEnvError(f"unknown success_rule {success_rule!r}; choose one of {SUCCESS_RULES}")
+        space = build_space(names, targets, success_rule, pixels=views)
+        self._use(Navigators(space, np.arange(n) % len(names), stop_ends=bool(stop_ends)), max_steps, views)
+
+    def _use(self, navigators: Navigators, max_steps, views: bool) -> None:
         if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
             raise VecEnvError(f"max_steps must be a positive integer, not {max_steps!r}")
-        self.space = build_space(names, targets, success_rule, pixels=views)
+        if views and navigators.space.views is None:
+            raise VecEnvError("views=True needs a state space built with its views (pixels=True)")
+        self.space, self.navigators = navigators.space, navigators
         self.views = views
         self.max_steps = max_steps
-        self.navigators = Navigators(self.space, np.arange(n) % len(names), stop_ends=bool(stop_ends))
         # the learned agents' inputs as plain float32 rows, gathered per step into fresh arrays
         self._features = self.space.features_t.numpy()
         self._kitchen_names = np.array(self.space.kitchens, dtype=object)
@@ -406,7 +416,9 @@ class _Navigation:
 
 class NavigationVectorEnv(_Navigation, VectorEnv):
     """num_envs navigators over `kitchens` (a split, a kitchen or a list), sub-env i in kitchen i mod K,
-    stepped at once; gymnasium's VectorEnv with same-step autoreset (module docstring)."""
+    stepped at once; gymnasium's VectorEnv with same-step autoreset, or none (`autoreset=False`:
+    gymnasium's DISABLED mode, the caller resets the finished sub-envs with
+    `reset(options={"reset_mask": mask})`). See the module docstring."""
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
@@ -419,24 +431,73 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
         stop_ends: bool = True,
         max_steps: int = TRAINING_MAX_STEPS,
         views: bool = False,
+        autoreset: bool = True,
     ):
         if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
             raise VecEnvError(f"num_envs must be a positive integer, not {num_envs!r}")
         self._setup(num_envs, kitchens, targets, success_rule, stop_ends, max_steps, views)
-        self.num_envs = num_envs
-        self.single_observation_space = observation_space(views)
+        self._spaces(autoreset)
+
+    @classmethod
+    def over(
+        cls,
+        space: StateSpace,
+        kitchen: np.ndarray,
+        assigned: np.ndarray | None = None,
+        stop_ends: bool = True,
+        max_steps: int = TRAINING_MAX_STEPS,
+        autoreset: bool = True,
+    ) -> NavigationVectorEnv:
+        """The vector env over a state space already built (`build_space`), sub-env i in the space's
+        kitchen `kitchen[i]` and, with `assigned`, keeping target row `assigned[i]` in every episode:
+        the trainer's layout (the paper's threads, one training target each)."""
+        env = cls.__new__(cls)
+        env._use(Navigators(space, kitchen, stop_ends=bool(stop_ends), assigned=assigned), max_steps, False)
+        env._spaces(autoreset)
+        return env
+
+    def _spaces(self, autoreset: bool) -> None:
+        self.num_envs = n = self.navigators.n
+        self.autoreset = bool(autoreset)
+        mode = AutoresetMode.SAME_STEP if self.autoreset else AutoresetMode.DISABLED
+        self.metadata = {**type(self).metadata, "autoreset_mode": mode}
+        self.single_observation_space = observation_space(self.views)
         self.single_action_space = spaces.Discrete(len(ACTIONS))
-        self.observation_space = batch_space(self.single_observation_space, num_envs)
-        self.action_space = batch_space(self.single_action_space, num_envs)
-        self._rng = np.random.default_rng()
-        self._all = np.arange(num_envs)
+        self.observation_space = batch_space(self.single_observation_space, n)
+        self.action_space = batch_space(self.single_action_space, n)
+        self._all = np.arange(n)
+        self._ended = np.zeros(n, bool)  # without autoreset: finished, waiting for a reset
+
+    @property
+    def stop_ends(self) -> bool:
+        """Whether a Stop that does not succeed ends the episode (False: a no-op); settable between steps."""
+        return self.navigators.stop_ends
+
+    @stop_ends.setter
+    def stop_ends(self, value: bool) -> None:
+        self.navigators.stop_ends = bool(value)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """New episodes for every sub-env, or (options["reset_mask"], a bool per sub-env) for those only;
+        options["reach"]: starts at most that many actions from the destination (a curriculum)."""
         if seed is not None:
-            self._rng = np.random.default_rng(seed)
+            self.np_random = np.random.default_rng(seed)
             self.single_action_space.seed(seed)
             self.action_space.seed(seed)
-        self.navigators.draw(self._all, self._rng, self.max_steps)
+        options = dict(options or {})
+        mask, reach = options.pop("reset_mask", None), options.pop("reach", None)
+        if options:
+            raise VecEnvError(f"unknown reset options {sorted(options)}; known: reset_mask, reach")
+        idx = self._all
+        if mask is not None:
+            mask = np.asarray(mask)
+            if mask.shape != (self.num_envs,) or mask.dtype != bool:
+                raise VecEnvError(f"reset_mask must be {self.num_envs} bools, got {mask.dtype} {mask.shape}")
+            idx = np.flatnonzero(mask)
+        if reach is not None and (not isinstance(reach, (int, np.integer)) or reach < 0):
+            raise VecEnvError(f"reach must be a whole number of actions >= 0, not {reach!r}")
+        self.navigators.draw(idx, self.np_random, self.max_steps, None if reach is None else int(reach))
+        self._ended[idx] = False
         return self._gather(), self._infos()
 
     def step(self, actions):
@@ -447,14 +508,15 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
             )
         if actions.min() < 0 or actions.max() >= len(ACTIONS):
             raise VecEnvError(f"actions must lie in 0..{len(ACTIONS) - 1}")
+        if self._ended.any():
+            raise VecEnvError(
+                f"sub-envs {np.flatnonzero(self._ended).tolist()[:10]} finished their episodes: without "
+                "autoreset, reset them first (reset(options={'reset_mask': mask}))"
+            )
         rewards, terminated, truncated = self.navigators.step(actions.astype(np.int64))
         done = np.flatnonzero(terminated | truncated)
         infos = self._infos()
         if len(done):
-            last = self._gather(done)
-            final_obs = np.full(self.num_envs, None, dtype=object)
-            for j, i in enumerate(done.tolist()):
-                final_obs[i] = {key: value[j] for key, value in last.items()}
             mask = np.zeros(self.num_envs, bool)
             mask[done] = True
             final_info = {}
@@ -462,8 +524,16 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
                 column = np.zeros(self.num_envs, value.dtype)
                 column[done] = value
                 final_info[key], final_info[f"_{key}"] = column, mask.copy()
-            infos.update(final_obs=final_obs, _final_obs=mask.copy(), final_info=final_info, _final_info=mask)
-            self.navigators.draw(done, self._rng, self.max_steps)
+            infos.update(final_info=final_info, _final_info=mask)
+            if self.autoreset:
+                last = self._gather(done)
+                final_obs = np.full(self.num_envs, None, dtype=object)
+                for j, i in enumerate(done.tolist()):
+                    final_obs[i] = {key: value[j] for key, value in last.items()}
+                infos.update(final_obs=final_obs, _final_obs=mask.copy())
+                self.navigators.draw(done, self.np_random, self.max_steps)
+            else:
+                self._ended[done] = True
         return (
             self._gather(),
             rewards.astype(np.float64),

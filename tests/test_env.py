@@ -159,7 +159,7 @@ def test_observations_are_read_only_views_of_the_cache(make_env):
 
 
 def test_a_fresh_graph_is_read_only_too(floorplan1_tasks):
-    from kgnavbench.tasks import StateGraph
+    from kgnavbench.graph import StateGraph
 
     g = floorplan1_tasks.graph
     fresh = StateGraph(
@@ -181,7 +181,7 @@ def test_non_integer_starts_and_actions_are_refused(make_env, floorplan1_tasks, 
 
 
 def test_an_unknown_success_rule_for_distances_is_refused(floorplan1_tasks):
-    from kgnavbench.tasks import TaskError
+    from kgnavbench.graph import TaskError
 
     with pytest.raises(TaskError, match="visble"):
         floorplan1_tasks.distances(floorplan1_tasks.targets[0], "visble")

@@ -163,9 +163,7 @@ def test_closed_form_kg_branch_equals_the_literal_equations(kg, graph):
     x = inputs(cfg, b=8, seed=3)
     r_t, r_g = x["view_objects"].float(), x["target_objects"].float()
     fast, attention, node_features = branch(r_t, r_g, x["graph"])
-    slow, alpha = literal_kg(
-        branch, r_t, r_g, x["graph"], graph == "per_step", kg == "attention", all_nodes
-    )
+    slow, alpha = literal_kg(branch, r_t, r_g, x["graph"], graph == "per_step", kg == "attention", all_nodes)
     assert torch.allclose(fast, slow, atol=1e-5, rtol=1e-4)
     if kg == "attention":
         assert torch.allclose(attention, alpha, atol=1e-6)

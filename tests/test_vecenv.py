@@ -128,7 +128,7 @@ def test_single_env_plays_a_fixed_episode_to_success(floorplan1_tasks):
     observation, info = env.reset(options={"target": target.object_id, "start": start})
     assert info["target"] == target.object_id
     dist = floorplan1_tasks.distances(target, "destination")
-    from kgnavbench.tasks import expert_actions
+    from kgnavbench.graph import expert_actions
 
     expert = expert_actions(floorplan1_tasks.graph.next_state, dist)
     state, total, steps = start, 0.0, 0
@@ -177,6 +177,40 @@ def test_make_vec_gives_the_batched_env_with_same_step_autoreset(floorplan1_task
             successes += int(final["success"][done].sum())
         assert "state" not in infos and "expert_action" not in infos
     assert finished > 16
+
+
+def test_vector_env_without_autoreset_waits_for_reset_mask(floorplan1_tasks):
+    """gymnasium's DISABLED mode, as the trainer steps it: the ending step returns the episode's last
+    observation and its final_info; the finished sub-envs refuse to step until reset by mask, and
+    only they get new episodes; `reach` draws curriculum starts."""
+    from gymnasium.vector import AutoresetMode
+
+    envs = vecenv.NavigationVectorEnv(num_envs=4, kitchens="FloorPlan1", autoreset=False, max_steps=3)
+    assert envs.metadata["autoreset_mode"] == AutoresetMode.DISABLED
+    envs.reset(seed=0)
+    for _ in range(2):
+        _, _, terminated, truncated, infos = envs.step(np.full(4, STOP - 1, np.int64))  # LookDown
+        assert "final_info" not in infos
+    observations, _, terminated, truncated, infos = envs.step(np.full(4, STOP - 1, np.int64))
+    assert truncated.all() and "final_obs" not in infos and (infos["final_info"]["episode_length"] == 3).all()
+    before = envs.navigators.state.copy()
+    assert np.array_equal(observations["view_objects"], envs.space.objects[before])  # the last view
+    with pytest.raises(vecenv.VecEnvError, match="reset_mask"):
+        envs.step(np.zeros(4, np.int64))
+    mask = np.array([True, False, True, False])
+    with pytest.raises(vecenv.VecEnvError, match="reset_mask must be 4 bools"):
+        envs.reset(options={"reset_mask": mask.astype(int)})
+    with pytest.raises(vecenv.VecEnvError, match="unknown reset options"):
+        envs.reset(options={"mask": mask})
+    envs.reset(options={"reset_mask": mask, "reach": 0})
+    nav = envs.navigators
+    assert (nav.steps[mask] == 0).all() and (nav.steps[~mask] == 3).all()
+    # reach 0: the nearest starts the curriculum has (one action from the destination here)
+    assert (envs.space.dist[nav.target[mask], nav.state[mask]] <= 1).all()
+    with pytest.raises(vecenv.VecEnvError, match="reset them first"):
+        envs.step(np.zeros(4, np.int64))  # sub-envs 1 and 3 still wait
+    envs.reset(options={"reset_mask": ~mask})
+    envs.step(np.zeros(4, np.int64))
 
 
 def test_vector_env_over_a_split_spreads_its_kitchens(floorplan1_tasks):
