@@ -26,7 +26,9 @@ an unusable output folder) prints one line ``kgnavbench: error: ...`` to stderr 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
 import os
 import re
 import sys
@@ -43,6 +45,20 @@ from .walk import MAX_SIZE, MIN_SIZE, WalkError, view_size, walk
 from .world import ACTIONS, WorldError
 
 PROG = "kgnavbench"
+
+
+def package_version() -> str:
+    """The installed distribution's version (pyproject.toml's), with the git revision of a checkout."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from .files import git_revision
+
+    try:
+        number = version(PROG)
+    except PackageNotFoundError:
+        number = "unknown"
+    revision = git_revision()
+    return f"{number} ({revision})" if revision and revision != "unknown" else number
 
 
 class UsageError(Exception):
@@ -178,6 +194,17 @@ def cmd_targets(args: argparse.Namespace) -> int:
     return 0
 
 
+def json_safe(value):
+    """NaN and infinities (a cell without episodes) as JSON's null: `--json` is strict JSON."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
+
+
 def cmd_methods(args: argparse.Namespace) -> int:
     rows = []
     for name, source in plugin_sources().items():
@@ -211,7 +238,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     progress = (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else print
     if args.record is not None and not str(args.record).endswith(".rrd"):
         raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
-    run = evaluate(config, args.runs, progress=progress)
+    if args.record is not None:
+        writable_file(args.record, "--record")
+    writable_folder(args.runs, "--runs")
+    # with --json, stdout is the JSON alone: whatever a plugin prints goes to stderr
+    with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
+        run = evaluate(config, args.runs, progress=progress)
     if args.record is not None:
         from .record import RecordError, record_episodes  # rerun loads only when recording
 
@@ -239,7 +271,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         progress(f"recorded {done['episodes']} episodes ({done['steps']} steps) to {args.record}")
     if args.json:
         summary = {f"{c}/{k}": vars(m) for (c, k), m in run.summary.items()}
-        print(json.dumps({"run": str(run.directory), "summary": summary}, indent=1))
+        record = {"run": str(run.directory), "summary": summary}
+        print(json.dumps(json_safe(record), indent=1, allow_nan=False))
         return 0
     print()
     print((run.directory / "table.md").read_text().rstrip())
@@ -258,6 +291,11 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     options = parse_options(args.set or [])
     kitchens = _kitchen_list(args.kitchens) if args.kitchens is not None else ()
+    if args.record is not None:
+        if not str(args.record).endswith(".rrd"):
+            raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
+        writable_file(args.record, "--record")
+    writable_folder(args.runs, "--runs")
     try:
         directory = train_method(
             args.method,
@@ -292,6 +330,8 @@ def cmd_figures(args: argparse.Namespace) -> int:
     from .runs import TrainError
     from .table_spec import TableError
 
+    writable_folder(args.runs, "--runs")
+    writable_folder(args.out, "--out")
     try:
         paths = figures_of_table(args.preset, args.runs, args.out, args.spec, progress=print)
     except (FigureError, RecordError, TableError, TrainError) as e:
@@ -353,6 +393,9 @@ def cmd_table(args: argparse.Namespace) -> int:
         if args.jobs:
             print("\n".join(job_commands(spec, args.preset, args.runs)))
             return 0
+        writable_folder(args.runs, "--runs")
+        if args.job is None and not args.worker:
+            writable_folder(args.out or spec.path.parent, "--out")
         if args.job is not None or args.worker:
             if args.job is not None:
                 run_job(spec, args.preset, args.job, args.runs, progress=say, device=device)
@@ -380,8 +423,43 @@ def _positive(text: str) -> int:
     return n
 
 
+MAX_SEED = 2**31 - 1  # every generator takes it, and seed * 1000 + kitchen stays within 64 bits
+
+
+def _seed(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 0 <= n <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"{n} is not in 0..{MAX_SEED}")
+    return n
+
+
 def _runs_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+
+
+def writable_folder(path: Path, what: str) -> None:
+    """Make the folder (and its parents) or say in one line why it cannot be: before any work starts,
+    not after minutes of training."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UsageError(f"{what} {str(path)!r}: cannot write there ({e.strerror or e})") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise UsageError(f"{what} {str(path)!r}: cannot write there (no permission)")
+
+
+def writable_file(path: Path, what: str) -> None:
+    """The file's folder must exist and be writable, and the file itself, if it exists."""
+    folder = path.parent
+    if path.is_dir():
+        raise UsageError(f"{what} {str(path)!r} is a folder, not a file")
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise UsageError(f"{what} {str(path)!r}: its folder {str(folder)!r} is missing or not writable")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise UsageError(f"{what} {str(path)!r} is not writable")
 
 
 def _device_option(p: argparse.ArgumentParser) -> None:
@@ -434,6 +512,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog=PROG, description="Target-driven visual navigation benchmark in the 30 iTHOR kitchens."
     )
+    parser.add_argument("--version", action="version", version=f"{PROG} {package_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
 
@@ -466,7 +545,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="X,Z,HEADING,PITCH",
         help="start pose in metres and degrees (default: the world's initial pose)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the random actions (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of the random actions (default 0)")
     p.add_argument(
         "--placement-seed",
         type=int,
@@ -536,7 +615,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"the first N fixed episodes of every target (default {EPISODES_PER_TARGET})",
     )
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a plugin option (repeatable)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the policy (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of the policy (default 0)")
     _runs_option(p)
     p.add_argument(
         "--run",
@@ -578,7 +657,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a training option (repeatable)")
     p.add_argument("--frames", type=_frames, default=10_000_000, help="frames (agent steps) to train")
-    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="seed (default 0)")
     p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")
     _runs_option(p)
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="record the training curves with rerun")
@@ -653,7 +732,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--epochs", type=_positive, default=8)
     q.add_argument("--samples-per-epoch", type=_positive, default=16_000)
     q.add_argument("--shift", type=int, default=4, help="random shift of the views in pixels (0: none)")
-    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--seed", type=_seed, default=0)
     q.add_argument("--out", type=Path, help="where the weights go (default: the committed encoder file)")
     q = actions.add_parser("features", help="encode every state's view of the kitchens, cached")
     q.add_argument("kitchens", nargs="*", metavar="NAME", help="default: all 30")
@@ -686,6 +765,9 @@ def main(argv: list[str] | None = None) -> int:
     except BAD_INPUT as e:
         print(f"{PROG}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: saved results stay; the same command resumes
+        print(f"{PROG}: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
     except SystemExit as e:  # --help
         return e.code if isinstance(e.code, int) else 0
     except BrokenPipeError:  # `kgnavbench kitchens | head`: stop quietly

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .env import SUCCESS_RULES, parallel_env
-from .files import atomic_write, git_revision
+from .files import atomic_write, duration_text, git_revision
 from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import Plugin, PluginError, PolicySpec, guarded, load_plugin
 from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks
@@ -53,6 +53,7 @@ LONG_PATH = 5
 # 2: all episodes of a kitchen in one env reset (a policy's random stream differs from format 1's)
 EVALUATION_FORMAT = 2
 SPLITS = ("table", "train", "val", "test")
+MAX_SEED = 2**31 - 1  # a kitchen's policy seed is seed * 1000 + its index
 # a training run's checkpoints that `eval --run` can test
 CHECKPOINT_MEANING = {"best": "best validation SR", "last": "the run's latest weights"}
 CHECKPOINTS = tuple(CHECKPOINT_MEANING)
@@ -120,10 +121,18 @@ class EvalConfig:
             raise EvalError(
                 f"episodes per target must be 1..{EPISODES_PER_TARGET}, not {self.episodes_per_target}"
             )
+        if not 0 <= self.seed <= MAX_SEED:
+            raise EvalError(f"seed must be in 0..{MAX_SEED}, not {self.seed}")
         for k in self.kitchens:
             check_name(k)
         if len(set(self.kitchens)) != len(self.kitchens):
             raise EvalError(f"a kitchen is named twice in {','.join(self.kitchens)}")
+        outside = [k for k in self.kitchens if k not in kitchens_of_split(self.split)]
+        if outside:  # its episodes would be reported under this split's label
+            raise EvalError(
+                f"{', '.join(outside)} {'is' if len(outside) == 1 else 'are'} not in the {self.split!r} "
+                f"split ({', '.join(kitchens_of_split(self.split))})"
+            )
 
     def kitchen_list(self) -> list[str]:
         return list(self.kitchens) if self.kitchens else kitchens_of_split(self.split)
@@ -519,6 +528,7 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
 
     run = EvalRun(config, directory)
     start = time.perf_counter()
+    evaluated, evaluating = 0, 0.0  # kitchens evaluated in this process and their seconds (the ETA)
     for k, kitchen in enumerate(kitchens):
         path = directory / "episodes" / f"{kitchen}.jsonl"
         expected = expected_episodes(kitchen, config.episodes_per_target)
@@ -540,10 +550,13 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
             steps = sum(r.episode_length for r in results)
             run.steps += steps
             dt = time.perf_counter() - t0
+            evaluated, evaluating = evaluated + 1, evaluating + dt
+            left = len(kitchens) - k - 1
+            eta = f", ETA {duration_text(evaluating / evaluated * left)}" if left else ""
             progress(
                 f"[{k + 1}/{len(kitchens)}] {kitchen}: {len(results)} episodes, "
                 f"SR {100 * sum(r.success for r in results) / max(len(results), 1):.1f}%, "
-                f"{steps} agent-steps in {dt:.1f} s ({steps / max(dt, 1e-9):,.0f} agent-steps/s)"
+                f"{steps} agent-steps in {dt:.1f} s ({steps / max(dt, 1e-9):,.0f} agent-steps/s){eta}"
             )
         run.results.extend(results)
     run.seconds = time.perf_counter() - start

@@ -1,5 +1,5 @@
-"""Small helpers every stage shares: atomic writes, the git revision of the checkout, and the first
-line of an error message. No stage's logic lives here."""
+"""Small helpers every stage shares: atomic writes, the git revision of the checkout, the first line of
+an error message and a duration for progress lines. No stage's logic lives here."""
 
 from __future__ import annotations
 
@@ -49,3 +49,12 @@ def git_revision() -> str:
 def first_line(error: BaseException) -> str:
     """An exception's message cut to its first line (torch's load errors run to a page)."""
     return (str(error).strip().splitlines() or [""])[0]
+
+
+def duration_text(seconds: float) -> str:
+    """A duration for a progress line's ETA: '40 s', '12 min', '2 h 05 min'."""
+    seconds = max(0.0, seconds)
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    minutes = round(seconds / 60)
+    return f"{minutes} min" if minutes < 90 else f"{minutes // 60} h {minutes % 60:02d} min"

@@ -26,7 +26,7 @@ from .env import SUCCESS_RULES, TRAINING_MAX_STEPS
 from .files import atomic_write, first_line, git_revision
 from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import load_plugin
-from .tasks import load_task_file
+from .tasks import EPISODES_PER_TARGET, N_VAL_KITCHENS, load_task_file
 
 EXPERTS = ("walk_back", "shortest", "dagger")
 
@@ -143,6 +143,14 @@ class TrainOptions:
         for name in positive.split():
             if getattr(self, name) < 1:
                 raise TrainError(f"{name} must be at least 1, not {getattr(self, name)}")
+        bounded = {
+            "agents_per_kitchen": MAX_AGENTS_PER_KITCHEN,
+            "val_kitchens": N_VAL_KITCHENS,  # there are no more validation kitchens
+            "val_episodes": EPISODES_PER_TARGET,  # nor fixed episodes per target
+        }
+        for name, most in bounded.items():
+            if getattr(self, name) > most:
+                raise TrainError(f"{name} must be at most {most}, not {getattr(self, name)}")
         if not (0 < self.gamma <= 1 and self.lr > 0 and self.max_grad_norm > 0):
             raise TrainError("need 0 < gamma <= 1, lr > 0 and max_grad_norm > 0")
         if min(self.tse_subtargets, self.il_frames, self.stop_ends_from or 0) < 0:
@@ -151,6 +159,10 @@ class TrainOptions:
             raise TrainError(
                 f"start_curriculum is a fraction of the run, 0 to 1, not {self.start_curriculum}"
             )
+
+
+MAX_AGENTS_PER_KITCHEN = 1024  # 20,480 agents over the training kitchens: more is a typo (and the memory)
+MAX_SEED = 2**31 - 1  # every generator takes it; torchrun's ranks add 1,000,003 per rank
 
 
 @dataclass(frozen=True)
@@ -247,6 +259,8 @@ def train_method(
         raise TrainError(f"{method} does not train: {plugin.source} defines no train(config, run)")
     if frames < 1:
         raise TrainError(f"frames must be positive, not {frames}")
+    if not 0 <= seed <= MAX_SEED:
+        raise TrainError(f"seed must be in 0..{MAX_SEED}, not {seed}")
     config = plugin.config(options or {})
     kitchens = training_kitchens(kitchens)
     try:
@@ -262,7 +276,8 @@ def train_method(
         progress(f"{directory} is a finished run of {frames:,} frames; nothing to do")
         return directory
     if not main:  # torchrun's other ranks: rank 0 checks, claims and writes
-        hook(config, Run(directory, method, frames, seed, kitchens, progress, str(on)))
+        run = Run(directory, method, frames, seed, kitchens, progress, str(on))
+        call_train(plugin.source, hook, config, run)
         return directory
     # one trainer per run directory: a second one started on it at once is refused (a killed one's
     # claim is stale and taken over by the resume)
@@ -270,13 +285,26 @@ def train_method(
         with claims.held(directory / "trainer.claim", f"run {directory}"):
             return _train_in(
                 directory,
-                hook,
+                lambda config, run: call_train(plugin.source, hook, config, run),
                 config,
                 record,
                 Run(directory, method, frames, seed, kitchens, progress, str(on)),
             )
     except claims.ClaimError as e:
         raise TrainError(str(e)) from e
+
+
+def call_train(source, hook, config, run: Run) -> None:
+    """A plugin's train(config, run): what it raises, or a sys.exit, becomes one TrainError naming its
+    file (a Ctrl-C stays a KeyboardInterrupt: the run resumes from its last checkpoint)."""
+    try:
+        hook(config, run)
+    except TrainError:
+        raise
+    except SystemExit as e:
+        raise TrainError(f"{source}: train() called sys.exit({e.code!r}); a plugin raises instead") from e
+    except Exception as e:  # noqa: BLE001 - a plugin's failure, reported in one line with its file
+        raise TrainError(f"{source}: train() failed: {type(e).__name__}: {e}") from e
 
 
 def _train_in(directory: Path, hook, config, record: dict, run: Run) -> Path:

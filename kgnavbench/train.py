@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from . import distributed, encoder, models
 from .agent import Model, detached, keep_rows, run_episodes
 from .env import reward
-from .files import atomic_write
+from .files import atomic_write, duration_text
 from .graph import STOP
 from .kitchens import KITCHEN_NAMES
 from .losses import (
@@ -555,8 +555,10 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
             csv.DictWriter(f, METRICS).writerow(row)
         trainer.stats = trainer._empty_stats()
         save_checkpoint(last, {**trainer.state_dict(), **({"ranks": ranks_state} if ranks.world > 1 else {})})
+        fps = (trainer.frames - f0) / max(time.perf_counter() - t0, 1e-9)
+        eta = f"  ETA {duration_text((run.frames - trainer.frames) / fps)}" if not done and fps > 0 else ""
         progress(
-            f"{trainer.frames:>12,} frames  {row['frames_per_s']:>8} frames/s  "
+            f"{trainer.frames:>12,} frames  {row['frames_per_s']:>8} frames/s{eta}  "
             f"reward/frame {row['mean_reward']}  "
             f"SR(train episodes) {row['success_rate']}%  losses RL {row['rl_loss']} IL {row['il_loss']} "
             f"TSE {row['tse_loss']}"

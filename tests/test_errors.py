@@ -157,6 +157,90 @@ def test_bad_arguments(capsys, argv, named):
     assert out == ""
 
 
+@pytest.mark.parametrize(
+    ("argv", "named"),
+    [
+        (["train", "--method", "lstm_a3c", "--seed", "-1"], "--seed"),
+        (["train", "--method", "lstm_a3c", "--seed", str(2**70)], str(2**70)),
+        (["eval", "--method", "random_walk", "--seed", "-1"], "--seed"),
+        (
+            ["eval", "--method", "random_walk", "--split", "val", "--kitchens", "FloorPlan1"],
+            "not in the 'val'",
+        ),
+        (["train", "--method", "lstm_a3c", "--set", "agents_per_kitchen=1000000000"], "at most 1024"),
+        (["train", "--method", "lstm_a3c", "--set", "val_kitchens=6"], "val_kitchens must be at most 5"),
+        (["train", "--method", "lstm_a3c", "--set", "val_episodes=101"], "val_episodes must be at most 100"),
+        (["train", "--method", "lstm_a3c", "--record", "/nonexistent-folder/a.rrd"], "--record"),
+        (["train", "--method", "lstm_a3c", "--record", "curves.txt"], ".rrd"),
+    ],
+)
+def test_bad_input_is_refused_before_any_work(capsys, tmp_path, monkeypatch, argv, named):
+    """Issue 17's probe: a traceback, a plugin blamed, an OOM or a silent clamp before; one line now,
+    and no run directory."""
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run(capsys, *argv)
+    assert_one_line_error(code, err, named)
+    assert not list(tmp_path.glob("runs/*/*"))
+
+
+def test_unwritable_output_folders_are_refused_before_any_work(capsys, tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    for argv in (
+        ["train", "--method", "lstm_a3c", "--frames", "10", "--runs", str(blocker / "runs")],
+        ["table", "--preset", "smoke", "--runs", str(tmp_path / "runs"), "--out", str(blocker / "t")],
+        ["figures", "--runs", str(tmp_path / "runs"), "--out", str(blocker / "f")],
+    ):
+        code, _, err = run(capsys, *argv)
+        assert_one_line_error(code, err, "cannot write there", str(blocker))
+    assert blocker.read_text() == "x" and not list(tmp_path.glob("runs/*"))
+
+
+def test_version(capsys):
+    code, out, _ = run(capsys, "--version")
+    assert code == 0 and out.startswith("kgnavbench 0.")
+
+
+def test_a_train_hook_that_raises_or_exits_names_its_file(capsys, local):
+    for name, body in (("raiser", "raise RuntimeError('boom')"), ("exiter", "import sys; sys.exit(4)")):
+        (local / f"{name}.py").write_text(
+            plugin(f"def make_policy(config, spec):\n    pass\ndef train(config, run):\n    {body}\n")
+        )
+        code, _, err = run(capsys, "train", "--method", name, "--frames", "10", "--kitchens", "FloorPlan1")
+        line = assert_one_line_error(code, err, f"{name}.py", "train()")
+        assert ("RuntimeError: boom" in line) if name == "raiser" else ("sys.exit(4)" in line)
+
+
+def test_json_stays_json_when_a_plugin_prints_and_cells_are_empty(capsys, local, floorplan1_tasks):
+    """A plugin that prints goes to stderr under --json; cells without episodes are null, not NaN."""
+    body = WALKER.format(
+        reset="print('resetting', agent)", act="print('acting'); return {a: 9 for a in observations}"
+    )
+    (local / "chatty.py").write_text(plugin(body))
+    code, out, err = run(
+        capsys, "eval", "--method", "chatty", "--kitchens", "FloorPlan1", "--episodes", "1", "--json"
+    )
+    assert code == 0, err
+    record = json.loads(out)  # strict: json.loads would take NaN, so look for it too
+    assert "NaN" not in out and "acting" in err
+    assert record["summary"]["seen_seen/static"]["episodes"] > 0
+    from kgnavbench.cli import json_safe
+
+    assert (
+        json.dumps(json_safe({"sr": float("nan"), "x": [float("inf"), 1.5]}))
+        == '{"sr": null, "x": [null, 1.5]}'
+    )
+
+
+def test_ctrl_c_in_a_policy_is_one_line_and_resumable(capsys, local, floorplan1_tasks):
+    body = WALKER.format(reset="pass", act="raise KeyboardInterrupt")
+    (local / "interrupted.py").write_text(plugin(body))
+    code, out, err = run(
+        capsys, "eval", "--method", "interrupted", "--kitchens", "FloorPlan1", "--episodes", "1"
+    )
+    assert code == 130 and err.strip().startswith("kgnavbench: interrupted") and "Traceback" not in err
+
+
 def test_a_task_file_entry_missing_fields(capsys, monkeypatch):
     record = json.loads(json.dumps(tasks.load_task_file()))
     del record["kitchens"]["FloorPlan1"]["targets"][0]["destination"]
