@@ -34,7 +34,14 @@ from pathlib import Path
 import numpy as np
 
 from .env import SUCCESS_RULES, parallel_env
-from .files import atomic_write, duration_text, git_revision
+from .files import (
+    atomic_write,
+    checksum_matches,
+    checksum_path,
+    duration_text,
+    git_revision,
+    write_with_checksum,
+)
 from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import Plugin, PluginError, PolicySpec, guarded, load_plugin
 from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks
@@ -477,9 +484,10 @@ class EvalRun:
     resumed: list[str] = field(default_factory=list)
 
 
-def _write(path: Path, text: str) -> None:
+def _write(path: Path, text: str, checksum: bool = False) -> None:
+    """Atomically; with `checksum`, its sha256 beside it (results files: an edit is refused, not summed)."""
     try:
-        atomic_write(path, text)
+        write_with_checksum(path, text.encode()) if checksum else atomic_write(path, text)
     except OSError as e:
         raise EvalError(f"cannot write {path}: {e.strerror or e}; choose another --runs folder") from e
 
@@ -510,6 +518,23 @@ def open_run(directory: Path, identity: dict, plugin: Plugin) -> None:
     _write(config_path, json.dumps(saved, indent=2) + "\n")
 
 
+def check_fixed_options(config: EvalConfig, plugin_config) -> None:
+    """A checkpoint fixes the options it was trained with: `eval --run DIR --set k=v` with another value
+    would be recorded under the evaluation's name but not used, so it is refused."""
+    selected_checkpoint(config.run, config.method, config.checkpoint)  # a run of this method, with it
+    if not dataclasses.is_dataclass(plugin_config):
+        return
+    trained = json.loads((Path(config.run) / "config.json").read_text()).get("options", {})
+    resolved = json.loads(json.dumps(asdict(plugin_config)))
+    differ = [k for k, _ in config.options if k in trained and resolved.get(k) != trained[k]]
+    if differ:
+        given = ", ".join(f"{k}={resolved.get(k)!r}" for k in differ)
+        fixed = ", ".join(f"{k}={trained[k]!r}" for k in differ)
+        raise EvalError(
+            f"--run {config.run} was trained with {fixed}; its checkpoint fixes them (given {given})"
+        )
+
+
 def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) -> EvalRun:
     """Run (or resume) an evaluation. Each finished kitchen's results are saved atomically in
     RUN/episodes/<kitchen>.jsonl; a rerun of the same config skips kitchens already there, after
@@ -521,6 +546,8 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
             f"{config.method} is a learned method: train it (`kgnavbench train --method {config.method}`), "
             "then evaluate the run it prints with --run DIR"
         )
+    if config.run:
+        check_fixed_options(config, plugin_config)
     kitchens = config.kitchen_list()
     identity = run_identity(config, plugin, plugin_config)
     directory = Path(runs_dir) / "eval" / config.run_name(identity)
@@ -534,19 +561,26 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
         expected = expected_episodes(kitchen, config.episodes_per_target)
         results = None
         if path.exists():
+            data = path.read_bytes()
             try:
-                results = parse_results(path.read_text(), expected, kitchen)
-                run.resumed.append(kitchen)
+                results = parse_results(data.decode(), expected, kitchen)
             except (OSError, UnicodeDecodeError, json.JSONDecodeError, ValueError, TypeError) as e:
                 aside = path.with_name(f"{path.name}.corrupt-{int(time.time())}")
                 path.rename(aside)
                 print(
                     f"kgnavbench: {path} is damaged ({e}); moved to {aside.name}, re-running", file=sys.stderr
                 )
+            else:  # well formed: counted only if it is what was written
+                if checksum_matches(path, data) is False:
+                    raise EvalError(
+                        f"{path} does not match its checksum ({checksum_path(path).name}): it changed "
+                        "after it was written; refusing to count it (delete both to re-run that kitchen)"
+                    )
+                run.resumed.append(kitchen)
         if results is None:
             t0 = time.perf_counter()
             results = evaluate_kitchen(plugin, plugin_config, config, kitchen)
-            _write(path, "".join(json.dumps(asdict(r)) + "\n" for r in results))
+            _write(path, "".join(json.dumps(asdict(r)) + "\n" for r in results), checksum=True)
             steps = sum(r.episode_length for r in results)
             run.steps += steps
             dt = time.perf_counter() - t0

@@ -1,8 +1,10 @@
-"""Small helpers every stage shares: atomic writes, the git revision of the checkout, the first line of
-an error message and a duration for progress lines. No stage's logic lives here."""
+"""Small helpers every stage shares: atomic writes (with a checksum beside the file where it matters), the
+git revision of the checkout, the first line of an error message and a duration for progress lines. No
+stage's logic lives here."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 import subprocess
 import tempfile
@@ -58,3 +60,26 @@ def duration_text(seconds: float) -> str:
         return f"{seconds:.0f} s"
     minutes = round(seconds / 60)
     return f"{minutes} min" if minutes < 90 else f"{minutes // 60} h {minutes % 60:02d} min"
+
+
+def checksum_path(path: Path) -> Path:
+    """Where a file's checksum lives: PATH.sha256, in `sha256sum -c`'s format."""
+    return path.with_name(f"{path.name}.sha256")
+
+
+def write_with_checksum(path: Path, data: bytes) -> None:
+    """Write data atomically and its sha256 beside it. The old checksum goes first, so a crash at any
+    moment leaves a file with its own checksum or with none, never one with another file's."""
+    checksum_path(path).unlink(missing_ok=True)
+    atomic_write(path, data)
+    atomic_write(checksum_path(path), f"{hashlib.sha256(data).hexdigest()}  {path.name}\n")
+
+
+def checksum_matches(path: Path, data: bytes) -> bool | None:
+    """Whether data (the bytes read from path) matches the checksum written with it; None where there
+    is none (a file written before checksums, or by a writer killed before it wrote one)."""
+    try:
+        recorded = checksum_path(path).read_text().split()[0]
+    except (OSError, UnicodeDecodeError, IndexError):
+        return None
+    return recorded == hashlib.sha256(data).hexdigest()

@@ -23,7 +23,14 @@ import torch
 from . import claims, distributed
 from .device import DeviceError, name_of, resolve
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS
-from .files import atomic_write, first_line, git_revision
+from .files import (
+    atomic_write,
+    checksum_matches,
+    checksum_path,
+    first_line,
+    git_revision,
+    write_with_checksum,
+)
 from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import load_plugin
 from .tasks import EPISODES_PER_TARGET, N_VAL_KITCHENS, load_task_file
@@ -337,21 +344,29 @@ CHECKPOINT_FORMAT = 1
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
-    """Write a checkpoint atomically: a crash leaves the old one or the new one, never half of one."""
-
-    def write(f) -> None:
-        buffer = io.BytesIO()
-        torch.save(state, buffer)
-        f.write(buffer.getvalue())
-
-    atomic_write(path, write)
+    """Write a checkpoint atomically, with its sha256 beside it (PATH.sha256): a crash leaves the old one
+    or the new one, never half of one, and a checkpoint changed afterwards is refused when loaded."""
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    write_with_checksum(Path(path), buffer.getvalue())
 
 
 def load_checkpoint(path: Path | str) -> dict:
     """A checkpoint written by `train.learn`; anything else is a TrainError naming the file."""
     path = Path(path)
     try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
+        data = path.read_bytes()
+    except FileNotFoundError as e:
+        raise TrainError(f"checkpoint {path} does not exist") from e
+    except OSError as e:
+        raise TrainError(f"checkpoint {path} cannot be read ({e.strerror or e})") from e
+    if checksum_matches(path, data) is False:
+        raise TrainError(
+            f"checkpoint {path} is corrupt: it does not match its checksum ({checksum_path(path).name}), "
+            "so it changed after it was written; delete both to start over"
+        )
+    try:
+        ck = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
         if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
             raise ValueError("not a kgnavbench checkpoint")
         for key in ("model", "model_config", "covis", "kitchens", "frames"):

@@ -198,10 +198,10 @@ class World:
         self.objects = [replace(o, hidden=self._inside_closed(o, None)) for o in self.objects]
 
     def _inside_closed(self, o: KitchenObject, open_id: str | None) -> bool:
-        visited = set()
+        seen = set()
         p = o.parent
-        while p is not None and p not in visited:
-            visited.add(p)
+        while p is not None and p not in seen:
+            seen.add(p)
             parent = self.object(p)
             if parent.openable and parent.id != open_id:
                 return True

@@ -241,6 +241,20 @@ def test_ctrl_c_in_a_policy_is_one_line_and_resumable(capsys, local, floorplan1_
     assert code == 130 and err.strip().startswith("kgnavbench: interrupted") and "Traceback" not in err
 
 
+def test_an_edited_results_file_is_refused_not_summed(capsys, tmp_path, floorplan1_tasks):
+    argv = ["eval", "--method", "random_walk", "--kitchens", "FloorPlan1", "--episodes", "1"]
+    argv += ["--runs", str(tmp_path), "--json"]
+    code, out, err = run(capsys, *argv)
+    assert code == 0, err
+    (episodes,) = (tmp_path / "eval").glob("*/episodes/FloorPlan1.jsonl")
+    assert (episodes.parent / "FloorPlan1.jsonl.sha256").read_text().endswith("  FloorPlan1.jsonl\n")
+    rows = [json.loads(line) for line in episodes.read_text().splitlines()]
+    rows[0]["success"] = not rows[0]["success"]  # well formed, but not what was written
+    episodes.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    code, _, err = run(capsys, *argv)
+    assert_one_line_error(code, err, "FloorPlan1.jsonl", "checksum")
+
+
 def test_a_task_file_entry_missing_fields(capsys, monkeypatch):
     record = json.loads(json.dumps(tasks.load_task_file()))
     del record["kitchens"]["FloorPlan1"]["targets"][0]["destination"]

@@ -450,6 +450,12 @@ def test_corrupt_checkpoint_and_foreign_run_are_refused(capsys, tmp_path, floorp
     assert "not a training run" in capsys.readouterr().err
     assert main(["eval", "--method", "kg_attention", "--run", str(run_dir), "--runs", str(tmp_path)]) == 2
     assert "trained 'lstm_a3c', not 'kg_attention'" in capsys.readouterr().err
+    # a checkpoint changed after it was written (well formed, but not what the trainer wrote) is refused
+    best = runs.load_checkpoint(run_dir / "best.pt")
+    best["best_val_sr"] = 99.0
+    torch.save(best, run_dir / "best.pt")
+    with pytest.raises(runs.TrainError, match="does not match its checksum"):
+        runs.load_checkpoint(run_dir / "best.pt")
 
 
 def test_a_second_trainer_on_a_run_in_use_is_refused_and_a_dead_ones_claim_taken_over(
@@ -573,7 +579,7 @@ def test_eval_checkpoint_chooses_best_or_last(capsys, tmp_path, floorplan1_tasks
     for tensor in checkpoint["model"].values():
         if tensor.is_floating_point():
             tensor.add_(1.0)
-    torch.save(checkpoint, run_dir / "last.pt")
+    runs.save_checkpoint(run_dir / "last.pt", checkpoint)  # (a hand edit would fail its checksum)
     tested = {}
     for which in ("best", "last", None):  # None: the default
         assert main(base + (["--checkpoint", which] if which else [])) == 0
@@ -590,6 +596,13 @@ def test_eval_checkpoint_chooses_best_or_last(capsys, tmp_path, floorplan1_tasks
     assert main([*base, "--checkpoint", "last"]) == 2
     err = capsys.readouterr().err
     assert "has no last.pt yet" in err and err.count("\n") == 1
+    # an option the checkpoint fixes: another value is refused (it would be recorded but not used), the
+    # trained one is accepted
+    trained = json.loads((run_dir / "config.json").read_text())["options"]
+    assert main([*base, "--set", f"hidden={trained['hidden'] * 2}"]) == 2
+    err = capsys.readouterr().err
+    assert f"trained with hidden={trained['hidden']}" in err and err.count("\n") == 1
+    assert main([*base, "--set", f"hidden={trained['hidden']}"]) == 0
 
 
 def test_episode_cap_truncates_training_episodes(tmp_path, floorplan1_tasks):
