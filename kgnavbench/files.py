@@ -1,6 +1,6 @@
 """Small helpers every stage shares: atomic writes (with a checksum beside the file where it matters), the
-git revision of the checkout, the first line of an error message and a duration for progress lines. No
-stage's logic lives here."""
+git revision of the checkout, the first line of an error message, a duration for progress lines and
+worker processes that end with their parent. No stage's logic lives here."""
 
 from __future__ import annotations
 
@@ -8,6 +8,8 @@ import hashlib
 import os
 import subprocess
 import tempfile
+import threading
+import time
 from pathlib import Path
 
 
@@ -83,3 +85,16 @@ def checksum_matches(path: Path, data: bytes) -> bool | None:
     except (OSError, UnicodeDecodeError, IndexError):
         return None
     return recorded == hashlib.sha256(data).hexdigest()
+
+
+def end_with_parent(parent: int) -> None:
+    """A process pool's initializer (`initargs=(os.getpid(),)`): the worker ends as soon as the process
+    that started it is gone, killed or not, instead of working on for nobody (a worker is re-parented
+    when its parent dies; a daemon thread watches for that)."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="end-with-parent", daemon=True).start()

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .files import atomic_write
+from .files import atomic_write, end_with_parent
 from .kitchens import KITCHEN_DIR, KITCHEN_NAMES, check_name, object_types
 from .render import Visibility, render_views, visibility
 from .world import ACTIONS, HEADINGS, PITCHES, Pose, World
@@ -317,7 +317,7 @@ def build_all(
     if workers <= 1:
         yield from map(_build_one, jobs)
         return
-    with ProcessPoolExecutor(workers) as pool:
+    with ProcessPoolExecutor(workers, initializer=end_with_parent, initargs=(os.getpid(),)) as pool:
         yield from pool.map(_build_one, jobs)
 
 

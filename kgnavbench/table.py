@@ -42,7 +42,7 @@ from .evaluate import (
     git_revision,
     spl_term,
 )
-from .files import atomic_write
+from .files import atomic_write, end_with_parent
 from .intervals import (
     REPLICATES,
     VERDICTS,
@@ -362,7 +362,9 @@ def run_table(
         # spawn: a fresh interpreter per worker (torch's thread pools do not survive a fork)
         progress(f"== {len(jobs)} jobs, {workers} at a time, torch on one thread each")
         context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(workers, mp_context=context) as pool:
+        with concurrent.futures.ProcessPoolExecutor(
+            workers, mp_context=context, initializer=end_with_parent, initargs=(os.getpid(),)
+        ) as pool:
             pending = {}
             # the longest first, so that the last job does not run alone: the rows further down the
             # spec add components (IL, TSE, the graph) and train slower

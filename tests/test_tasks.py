@@ -5,6 +5,7 @@ import json
 import random
 import shutil
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -530,3 +531,52 @@ def test_missing_task_file_is_reported(tmp_path):
 def test_a_good_task_file_elsewhere_loads(tmp_path):
     path = _write_gz(tmp_path / "tasks.json.gz", _good_record())
     assert load_task_file(path) == {"format": TASKS_FORMAT, "splits": {}, "kitchens": {}}
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc (Linux)")
+def test_killing_prepare_leaves_no_worker_processes(tmp_path):
+    """kill -9 of `kgnavbench prepare` ends its pool's workers too (each watches its parent), rather than
+    leaving them to build state graphs for nobody."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    env = {**os.environ, "KGNAVBENCH_CACHE": str(tmp_path / "cache")}
+    argv = [
+        sys.executable,
+        "-m",
+        "kgnavbench",
+        "prepare",
+        "--kitchens",
+        "FloorPlan2,FloorPlan3",
+        "--workers",
+        "2",
+    ]
+    parent = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def children() -> list[int]:
+        out = subprocess.run(["pgrep", "-P", str(parent.pid)], capture_output=True, text=True).stdout
+        return [int(pid) for pid in out.split()]
+
+    deadline = time.time() + 60
+    while len(children()) < 2 and time.time() < deadline:
+        time.sleep(0.2)
+    workers = children()
+    assert len(workers) >= 2, "the pool did not start"
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+    deadline = time.time() + 10
+    alive = workers
+    while alive and time.time() < deadline:
+        time.sleep(0.2)
+        alive = [w for w in workers if os.path.exists(f"/proc/{w}") and "Z" not in _proc_state(w)]
+    assert not alive, f"workers {alive} outlived their parent"
+
+
+def _proc_state(pid: int) -> str:
+    try:
+        return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "Z"
