@@ -50,6 +50,7 @@ Evaluation passes fixed episodes: reset(options={"episodes": [{"target": id, "st
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -136,6 +137,30 @@ class _TargetTables:
     visible: np.ndarray  # (T, S) bool, target visible (for last_view_shows_target)
 
 
+class BatchObservations(Mapping):
+    """The observations of many agents as arrays with a leading agent axis (`observation_arrays`): the
+    per-agent dicts' keys, each gathered once, when first read."""
+
+    def __init__(self, env: NavigationEnv, idx: np.ndarray):
+        self._env, self._idx, self._arrays = env, idx, {}
+        self._keys = ("view", "target", "view_objects", "target_objects")
+        if env.features:
+            self._keys += ("features", "target_features")
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        if key not in self._arrays:
+            if key not in self._keys:
+                raise KeyError(key)
+            self._arrays[key] = self._env._observation_array(key, self._idx)
+        return self._arrays[key]
+
+    def __iter__(self):
+        return iter(self._keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+
 def _is_integer(value) -> bool:
     """An int or a NumPy integer (also 0-d arrays of one, as gymnasium's Discrete.sample gives); not a
     bool, not a float."""
@@ -189,6 +214,11 @@ class NavigationEnv(ParallelEnv):
         self._object_vectors = np.asarray(self.graph.object_vectors)
         self._destination = np.array([t.destination for t in self.tasks.targets], np.int64)
         self._target_meta = [(t.object_id, t.kind, t.seen) for t in self.tasks.targets]
+        self._target_columns = {  # the same per target row, for the infos as arrays
+            "target": np.array([t.object_id for t in self.tasks.targets], dtype=object),
+            "target_kind": np.array([t.kind for t in self.tasks.targets], dtype=object),
+            "target_seen": np.array([t.seen for t in self.tasks.targets], bool),
+        }
         v = self.graph.views.shape[1]
         n_types = len(object_types())
         self.features, self.observation, self.autoreset = features, observation, autoreset
@@ -334,8 +364,59 @@ class NavigationEnv(ParallelEnv):
         if not set(map(type, given)) <= {int} and not all(_is_integer(a) for a in given):
             raise EnvError(f"actions must be integers 0..{len(ACTIONS) - 1}, got {given}")
         act = np.array(given, np.int64).reshape(len(live))
+        idx, t = self._advance(act)
+        observations = self._observations(names, idx)
+        rewards = dict(zip(names, t.reward.tolist()))
+        terminations = dict(zip(names, t.terminated.tolist()))
+        truncations = dict(zip(names, t.truncated.tolist()))
+        infos = self._infos(names, idx)
+        going = ~(t.terminated | t.truncated)
+        if not going.all() and self.autoreset:
+            # each finished navigator starts its next training episode where it is listed: its
+            # observation is the new episode's first, its infos are still the ended episode's
+            ended = idx[~going]
+            for i in ended.tolist():
+                self._begin(i, *self._draw_episode())
+            observations.update(self._observations([names[j] for j in np.flatnonzero(~going)], ended))
+        elif not going.all():
+            self._leave(idx, names, going)
+        self.agents = list(self._live_agents)
+        return observations, rewards, terminations, truncations, infos
+
+    # -- the batched face (evaluation of a policy with act_batch: arrays, no per-agent dicts) --------
+    def observation_arrays(self) -> BatchObservations:
+        """The live agents' observations (env.agents order) as arrays with a leading agent axis, each
+        gathered when first read (a policy that reads only the features never copies a view)."""
+        return BatchObservations(self, np.array(self._live, np.int64))
+
+    def info_arrays(self, privileged: bool = False) -> dict:
+        """The live agents' infos as arrays (env.agents order); `state` and `expert_action` only when
+        privileged."""
+        return self._info_arrays(np.array(self._live, np.int64), privileged)
+
+    def step_arrays(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+        """step() for arrays: one action per live agent in env.agents order -> rewards, terminated,
+        truncated and the infos as arrays over the same agents (privileged ones included: the caller
+        decides what a plugin sees); finished agents leave env.agents as in step(). Not with autoreset."""
+        if self.autoreset:
+            raise EnvError("step_arrays is for evaluation: not with autoreset=True")
+        act = np.asarray(actions)
+        if act.shape != (len(self._live),) or not np.issubdtype(act.dtype, np.integer):
+            raise EnvError(f"actions must be {len(self._live)} integers, got {act.dtype} {act.shape}")
+        names = self._live_agents
+        idx, t = self._advance(act.astype(np.int64))
+        infos = self._info_arrays(idx, privileged=True)
+        going = ~(t.terminated | t.truncated)
+        if not going.all():
+            self._leave(idx, names, going)
+        self.agents = list(self._live_agents)
+        return t.reward, t.terminated, t.truncated, infos
+
+    def _advance(self, act: np.ndarray) -> tuple[np.ndarray, Transition]:
+        """The live agents (rows idx) take their actions: the transition and every counter it moves."""
         if ((act < 0) | (act >= len(ACTIONS))).any():
             raise EnvError(f"actions must be integers 0..{len(ACTIONS) - 1}, got {act.tolist()}")
+        live = self._live
         idx = np.array(live, np.int64)
         t = transition(
             self.graph.next_state,
@@ -357,28 +438,15 @@ class NavigationEnv(ParallelEnv):
         self._collisions[idx] += t.collided
         self._arrived[idx] |= t.on_goal
         self._success[idx] = t.success
-        rewards_arr, terminated_arr, truncated_arr = t.reward, t.terminated, t.truncated
 
         if live and live[0] == 0:
             self._trail.append(int(nxt[0]))
-        observations = self._observations(names, idx)
-        rewards = dict(zip(names, rewards_arr.tolist()))
-        terminations = dict(zip(names, terminated_arr.tolist()))
-        truncations = dict(zip(names, truncated_arr.tolist()))
-        infos = self._infos(names, idx)
-        going = ~(terminated_arr | truncated_arr)
-        if not going.all() and self.autoreset:
-            # each finished navigator starts its next training episode where it is listed: its
-            # observation is the new episode's first, its infos are still the ended episode's
-            ended = idx[~going]
-            for i in ended.tolist():
-                self._begin(i, *self._draw_episode())
-            observations.update(self._observations([names[j] for j in np.flatnonzero(~going)], ended))
-        elif not going.all():
-            self._live = idx[going].tolist()
-            self._live_agents = [a for a, on in zip(names, going.tolist()) if on]
-        self.agents = list(self._live_agents)
-        return observations, rewards, terminations, truncations, infos
+        return idx, t
+
+    def _leave(self, idx: np.ndarray, names: list[str], going: np.ndarray) -> None:
+        """The agents whose episodes ended leave the live set."""
+        self._live = idx[going].tolist()
+        self._live_agents = [a for a, on in zip(names, going.tolist()) if on]
 
     def _begin(self, i: int, row: int, start: int, cap: int) -> None:
         """Agent row i starts a new episode (autoreset)."""
@@ -410,6 +478,37 @@ class NavigationEnv(ParallelEnv):
             f = self._features
             for o, s, d in zip(out.values(), states, goals):
                 o["features"], o["target_features"] = f[s], f[d]
+        return out
+
+    def _observation_array(self, key: str, idx: np.ndarray) -> np.ndarray:
+        """One observation key of agents idx, stacked (a fresh array)."""
+        if self.observation == "box":
+            raise EnvError("observation arrays are the dict observation's keys, not observation='box'")
+        if key in ("features", "target_features") and not self.features:
+            raise KeyError(key)
+        target = key in ("target", "target_objects", "target_features")
+        states = self._destination[self._row[idx]] if target else self._state[idx]
+        table = {"view": self._views, "target": self._views, "view_objects": self._object_vectors}
+        table.update(target_objects=self._object_vectors)
+        if self.features:
+            table.update(features=self._features, target_features=self._features)
+        return table[key][states]
+
+    def _info_arrays(self, idx: np.ndarray, privileged: bool) -> dict:
+        """The infos of agents idx as arrays (the per-agent dicts' keys; privileged ones on request)."""
+        row, state = self._row[idx], self._state[idx]
+        out = {
+            "success": self._success[idx],
+            "path_length": self._path[idx],
+            "episode_length": self._steps[idx],
+            "shortest_path": self._shortest[idx],
+            "collisions": self._collisions[idx],
+            **{key: column[row] for key, column in self._target_columns.items()},
+            "last_view_shows_target": self._tables.visible[row, state],
+            "kitchen": np.full(len(idx), self.kitchen, dtype=object),
+        }
+        if privileged:
+            out["state"], out["expert_action"] = state, self._tables.expert[row, state]
         return out
 
     def _infos(self, names: list[str], idx: np.ndarray) -> dict:

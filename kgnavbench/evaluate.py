@@ -205,6 +205,8 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
     episode_of = {agent: n for n, agent in enumerate(agents)}
     for agent in agents:
         guarded(plugin, "reset()", policy.reset, agent)
+    if callable(getattr(policy, "act_batch", None)):
+        return _run_batched(plugin, policy, env, kitchen, columns, episodes)
     finished: dict[str, EpisodeResult] = {}
     while env.agents:
         shown = infos if plugin.privileged else without_privileged(infos)
@@ -230,6 +232,50 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
                 )
                 del observations[agent], infos[agent]
     return [finished[agent] for agent in agents]  # in episode order, not finishing order
+
+
+def _run_batched(plugin, policy, env, kitchen: str, columns: list[str], episodes: list[dict]) -> list:
+    """evaluate_kitchen's loop for a policy with act_batch (the learned ones): the env's arrays instead
+    of per-agent dicts, the same agents in the same order, so the same actions and results as act()."""
+    results: list[EpisodeResult | None] = [None] * len(episodes)
+    live = np.arange(len(env.agents))  # the episode of each agent in env.agents (agent n runs episode n)
+    while env.agents:
+        agents = env.agents
+        shown = env.info_arrays(privileged=plugin.privileged)
+        actions = guarded(plugin, "act_batch()", policy.act_batch, agents, env.observation_arrays(), shown)
+        actions = check_action_array(plugin, actions, len(agents))
+        _, terminated, truncated, infos = env.step_arrays(actions)
+        ended = terminated | truncated
+        for j in np.flatnonzero(ended).tolist():
+            n = int(live[j])
+            results[n] = EpisodeResult(
+                kitchen=kitchen,
+                target=str(infos["target"][j]),
+                kind=str(infos["target_kind"][j]),
+                column=columns[n],
+                start=episodes[n]["start"],
+                max_steps=episodes[n]["max_steps"],
+                success=bool(infos["success"][j]),
+                path_length=int(infos["path_length"][j]),
+                shortest_path=int(infos["shortest_path"][j]),
+                collisions=int(infos["collisions"][j]),
+                last_view_shows_target=bool(infos["last_view_shows_target"][j]),
+                episode_length=int(infos["episode_length"][j]),
+            )
+        live = live[~ended]
+    return results
+
+
+def check_action_array(plugin: Plugin, actions, n: int) -> np.ndarray:
+    """act_batch() must return n integers 0..9, one per agent in order; anything else names the plugin."""
+    array = np.asarray(actions)
+    if array.shape != (n,) or array.dtype == bool or not np.issubdtype(array.dtype, np.integer):
+        raise PluginError(
+            f"{plugin.source}: act_batch() must return {n} integer actions, got {array.dtype} {array.shape}"
+        )
+    if n and not (array.min() >= 0 and array.max() < len(ACTIONS)):
+        raise PluginError(f"{plugin.source}: act_batch() returned an action outside 0..{len(ACTIONS) - 1}")
+    return array.astype(np.int64)
 
 
 PRIVILEGED_INFOS = ("state", "expert_action")  # only a plugin with PRIVILEGED = True reads these

@@ -71,7 +71,7 @@ class LearnedPolicy:
                 h[i] = 0.0
         self.fresh.add(agent)
 
-    def _missing(self, observation: dict) -> None:
+    def _missing(self, observation) -> None:
         for key in (self.view_key, self.target_key):
             if key not in observation:
                 raise TrainError(
@@ -85,25 +85,38 @@ class LearnedPolicy:
             return {}
         shown = [observations[a] for a in agents]
         self._missing(shown[0])
+        keys = (self.view_key, self.target_key, "view_objects", "target_objects")
+        batch = {key: np.stack([o[key] for o in shown]) for key in keys}
+        shown_infos = {key: [infos[a][key] for a in agents] for key in ("target", "kitchen")}
+        return dict(zip(agents, self.act_batch(agents, batch, shown_infos).tolist()))
+
+    def act_batch(self, agents: list[str], observations, infos) -> np.ndarray:
+        """act() on arrays: `observations` and `infos` hold one row per agent of `agents` (the env's
+        `observation_arrays()` and `info_arrays()`, or the dicts stacked by act()) -> one action each.
+        One batched forward pass, one draw from the policy's generator: the same actions as act()."""
+        if not agents:
+            return np.zeros(0, np.int64)
+        self._missing(observations)
         for a in agents:
             if a not in self.slot:
                 self.reset(a)
         slots = np.fromiter((self.slot[a] for a in agents), np.int64, len(agents))
-        now = np.stack([o[self.view_key] for o in shown])
+        now = observations[self.view_key]
         tensor = self.model.tensor
-        r_t = tensor(np.stack([o["view_objects"] for o in shown]).astype(np.float32))
-        r_g = tensor(np.stack([o["target_objects"] for o in shown]).astype(np.float32))
+        r_t = tensor(np.asarray(observations["view_objects"]).astype(np.float32))
+        r_g = tensor(np.asarray(observations["target_objects"]).astype(np.float32))
+        targets = observations[self.target_key]
         scene, target_rows = None, None
         if self.ff:
             view = tensor(self._frames(agents, slots, now))
-            target = tensor(np.stack([o[self.target_key] for o in shown]))
-            scene = np.array([self._scene(infos[a]["kitchen"]) for a in agents], np.int64)
+            target = tensor(targets)
+            scene = np.array([self._scene(k) for k in infos["kitchen"]], np.int64)
         else:  # each distinct target's layers once, with the row of every agent's
             distinct, first, rows = np.unique(
-                [infos[a]["target"] for a in agents], return_index=True, return_inverse=True
+                np.asarray(infos["target"], dtype=object).astype(str), return_index=True, return_inverse=True
             )
             view = tensor(now)
-            target = tensor(np.stack([shown[i][self.target_key] for i in first]))
+            target = tensor(targets[first])
             target_rows = tensor(rows.reshape(-1))
         self.fresh.difference_update(agents)
         with torch.no_grad():
@@ -118,7 +131,7 @@ class LearnedPolicy:
         # for recordings (`explain`): kept as the tensor, read only when asked (building per-agent lists
         # on every step cost an evaluation about a seventh of its time)
         self.attention = (agents, extras["attention"]) if extras["attention"] is not None else None
-        return dict(zip(agents, actions.cpu().tolist()))
+        return actions.cpu().numpy()
 
     def _frames(self, agents: list[str], slots: np.ndarray, now: np.ndarray) -> np.ndarray:
         """FF: each agent's last `history` frames, this one last (a new episode: this one repeated)."""
