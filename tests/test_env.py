@@ -638,3 +638,34 @@ def test_a_dropped_env_is_freed(make_env):
     del env
     gc.collect()
     assert ref() is None
+
+
+def test_the_array_face_steps_as_the_dict_face(make_env, tasks):
+    """observation_arrays / info_arrays / step_arrays (the batched evaluation path) give, agent for agent,
+    the dict API's observations, infos, rewards and terminations, and the same agents leave."""
+    episodes = [episode(t.object_id, s, max_steps=30) for t in tasks.targets[:4] for s in t.starts[:3]]
+    dict_env = make_env(n_agents=len(episodes), features=True)
+    array_env = make_env(n_agents=len(episodes), features=True)
+    observations, infos = dict_env.reset(options={"episodes": episodes})
+    array_env.reset(options={"episodes": episodes})
+    rng = np.random.default_rng(0)
+    while dict_env.agents:
+        agents = list(dict_env.agents)
+        assert array_env.agents == agents
+        batch, shown = array_env.observation_arrays(), array_env.info_arrays()
+        assert set(batch) == set(observations[agents[0]]) and "state" not in shown
+        for key in batch:
+            assert np.array_equal(batch[key], np.stack([observations[a][key] for a in agents]))
+        for key, column in shown.items():
+            assert list(column) == [infos[a][key] for a in agents], key
+        actions = rng.integers(0, len(ACTIONS), len(agents))
+        observations, rewards, terms, truncs, infos = dict_env.step(dict(zip(agents, actions.tolist())))
+        r, term, trunc, step_infos = array_env.step_arrays(actions)
+        assert r.tolist() == [rewards[a] for a in agents]
+        assert term.tolist() == [terms[a] for a in agents] and trunc.tolist() == [truncs[a] for a in agents]
+        for key, column in step_infos.items():
+            assert list(column) == [infos[a][key] for a in agents], key
+    assert not array_env.agents
+    with pytest.raises(EnvError, match="integers"):
+        array_env.reset(options={"episodes": episodes})
+        array_env.step_arrays(np.zeros(3))

@@ -615,3 +615,28 @@ def test_episode_cap_truncates_training_episodes(tmp_path, floorplan1_tasks):
     assert trainer.stats["episodes"] >= trainer.nav.n
     with pytest.raises(runs.TrainError, match="episode_cap"):
         tiny_options(episode_cap=0)
+
+
+@pytest.mark.parametrize("method", ["kg_attention", "ff_a3c"])
+def test_batched_evaluation_acts_as_the_dict_interface(capsys, tmp_path, floorplan1_tasks, method):
+    """A learned policy's act_batch (evaluate's array path) and its act() through the per-agent dicts
+    give the same episodes: the same agents in the same order, one draw per step from one generator."""
+    from kgnavbench import evaluate, plugins
+
+    assert main(_train(tmp_path, method, 400)[3:]) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    plugin = plugins.load_plugin(method)
+    config = evaluate.EvalConfig(method=method, options=(), episodes_per_target=2, run=str(run_dir))
+
+    class DictOnly:  # hides act_batch: evaluate_kitchen takes the per-agent dict path
+        def __init__(self, policy):
+            self.reset, self.act = policy.reset, policy.act
+
+    batched = evaluate.evaluate_kitchen(plugin, plugin.config({}), config, "FloorPlan1")
+    make_policy = plugins.Plugin.make_policy
+    try:
+        plugins.Plugin.make_policy = lambda self, c, s: DictOnly(make_policy(self, c, s))
+        per_agent = evaluate.evaluate_kitchen(plugin, plugin.config({}), config, "FloorPlan1")
+    finally:
+        plugins.Plugin.make_policy = make_policy
+    assert batched == per_agent and len(batched) == 2 * len(floorplan1_tasks.targets)
