@@ -40,7 +40,11 @@ def main() -> None:
     ap.add_argument("--method", default="", help="the run's method (default: its config.json's)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="plugin options")
     ap.add_argument("--checkpoint", default="best", choices=("best", "last"))
-    ap.add_argument("--kitchens", default="FloorPlan1,FloorPlan2,FloorPlan27", help="kitchens of Table I (training or test)")
+    ap.add_argument(
+        "--kitchens",
+        default="FloorPlan1,FloorPlan2,FloorPlan27",
+        help="kitchens of Table I (training or test)",
+    )
     ap.add_argument("--episodes", type=int, default=20, help="fixed episodes per target")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--frames", type=int, default=5_000, help="frames of the tiny run (without --run)")
