@@ -21,7 +21,7 @@ import csv
 import time
 from pathlib import Path
 
-from kgnavbench.cli import _frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
+from kgnavbench.arguments import frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
 from kgnavbench.evaluate import EvalConfig, evaluate
 from kgnavbench.runs import train_method
 from kgnavbench.table_spec import load_spec

@@ -28,13 +28,14 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import math
 import os
 import re
 import sys
 import time
 from pathlib import Path
 
+from . import arguments
+from .arguments import UsageError
 from .env import EnvError
 from .evaluate import CHECKPOINTS, SPLITS, EvalConfig, EvalError, evaluate, selected_checkpoint
 from .graph import TaskError, build_all, cache_dir
@@ -59,10 +60,6 @@ def package_version() -> str:
         number = "unknown"
     revision = git_revision()
     return f"{number} ({revision})" if revision and revision != "unknown" else number
-
-
-class UsageError(Exception):
-    """Bad command-line input: reported as one `kgnavbench: error: ...` line, exit status 2."""
 
 
 # every stage's bad-input error: one `kgnavbench: error: ...` line and exit status 2, never a traceback
@@ -122,23 +119,8 @@ def cmd_kitchens(args: argparse.Namespace) -> int:
 PAPER_RANDOM_WALK = "1.56 / 14.86 / 15.84 / 0.23 / 3.25"
 
 
-def _kitchen_list(text: str | None) -> list[str]:
-    """`--kitchens A,B`: every name known, none twice, none empty; no option: all 30."""
-    if text is None:
-        return list(KITCHEN_NAMES)
-    names = [k.strip() for k in text.split(",")]
-    if not text.strip() or any(not k for k in names):
-        raise UsageError(
-            f"bad --kitchens {text!r}: expected comma-separated kitchens like FloorPlan1,FloorPlan5"
-        )
-    twice = sorted({k for k in names if names.count(k) > 1})
-    if twice:
-        raise UsageError(f"bad --kitchens {text!r}: {', '.join(twice)} named twice")
-    return [check_name(k) for k in names]
-
-
 def cmd_prepare(args: argparse.Namespace) -> int:
-    kitchens = _kitchen_list(args.kitchens)
+    kitchens = arguments.kitchen_list(args.kitchens)
     start = time.perf_counter()
     total = 0
     for kitchen, seconds, n in build_all(kitchens, workers=args.workers):
@@ -194,17 +176,6 @@ def cmd_targets(args: argparse.Namespace) -> int:
     return 0
 
 
-def json_safe(value):
-    """NaN and infinities (a cell without episodes) as JSON's null: `--json` is strict JSON."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    return value
-
-
 def cmd_methods(args: argparse.Namespace) -> int:
     rows = []
     for name, source in plugin_sources().items():
@@ -226,12 +197,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         success_rule=args.success_rule,
         stop_ends=not args.stop_noop,
         split=args.split,
-        kitchens=tuple(_kitchen_list(args.kitchens)) if args.kitchens is not None else (),
+        kitchens=tuple(arguments.kitchen_list(args.kitchens)) if args.kitchens is not None else (),
         episodes_per_target=args.episodes,
         seed=args.seed,
         run=str(args.run) if args.run else "",
         checkpoint=args.checkpoint,
-        device=_device(args.device),
+        device=arguments.device_name(args.device),
     )
     if args.checkpoint != "best" and not args.run:
         raise UsageError("--checkpoint chooses among a training run's checkpoints: give --run DIR too")
@@ -239,8 +210,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.record is not None and not str(args.record).endswith(".rrd"):
         raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
     if args.record is not None:
-        writable_file(args.record, "--record")
-    writable_folder(args.runs, "--runs")
+        arguments.writable_file(args.record, "--record")
+    arguments.writable_folder(args.runs, "--runs")
     # with --json, stdout is the JSON alone: whatever a plugin prints goes to stderr
     with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
         run = evaluate(config, args.runs, progress=progress)
@@ -272,7 +243,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.json:
         summary = {f"{c}/{k}": vars(m) for (c, k), m in run.summary.items()}
         record = {"run": str(run.directory), "summary": summary}
-        print(json.dumps(json_safe(record), indent=1, allow_nan=False))
+        print(json.dumps(arguments.json_safe(record), indent=1, allow_nan=False))
         return 0
     print()
     print((run.directory / "table.md").read_text().rstrip())
@@ -290,12 +261,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     from .runs import TrainError, train_method
 
     options = parse_options(args.set or [])
-    kitchens = _kitchen_list(args.kitchens) if args.kitchens is not None else ()
+    kitchens = arguments.kitchen_list(args.kitchens) if args.kitchens is not None else ()
     if args.record is not None:
         if not str(args.record).endswith(".rrd"):
             raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
-        writable_file(args.record, "--record")
-    writable_folder(args.runs, "--runs")
+        arguments.writable_file(args.record, "--record")
+    arguments.writable_folder(args.runs, "--runs")
     try:
         directory = train_method(
             args.method,
@@ -330,8 +301,8 @@ def cmd_figures(args: argparse.Namespace) -> int:
     from .runs import TrainError
     from .table_spec import TableError
 
-    writable_folder(args.runs, "--runs")
-    writable_folder(args.out, "--out")
+    arguments.writable_folder(args.runs, "--runs")
+    arguments.writable_folder(args.out, "--out")
     try:
         paths = figures_of_table(args.preset, args.runs, args.out, args.spec, progress=print)
     except (FigureError, RecordError, TableError, TrainError) as e:
@@ -389,13 +360,13 @@ def cmd_table(args: argparse.Namespace) -> int:
         spec = load_spec(args.spec or SPEC_FILE)
         if args.preset not in spec.presets:
             raise UsageError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
-        device = _device(args.device)
+        device = arguments.device_name(args.device)
         if args.jobs:
             print("\n".join(job_commands(spec, args.preset, args.runs)))
             return 0
-        writable_folder(args.runs, "--runs")
+        arguments.writable_folder(args.runs, "--runs")
         if args.job is None and not args.worker:
-            writable_folder(args.out or spec.path.parent, "--out")
+            arguments.writable_folder(args.out or spec.path.parent, "--out")
         if args.job is not None or args.worker:
             if args.job is not None:
                 run_job(spec, args.preset, args.job, args.runs, progress=say, device=device)
@@ -413,53 +384,8 @@ def cmd_table(args: argparse.Namespace) -> int:
     return 0
 
 
-def _positive(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if not 1 <= n <= 256:
-        raise argparse.ArgumentTypeError(f"{n} is not in 1..256")
-    return n
-
-
-MAX_SEED = 2**31 - 1  # every generator takes it, and seed * 1000 + kitchen stays within 64 bits
-
-
-def _seed(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 0 <= n <= MAX_SEED:
-        raise argparse.ArgumentTypeError(f"{n} is not in 0..{MAX_SEED}")
-    return n
-
-
 def _runs_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
-
-
-def writable_folder(path: Path, what: str) -> None:
-    """Make the folder (and its parents) or say in one line why it cannot be: before any work starts,
-    not after minutes of training."""
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UsageError(f"{what} {str(path)!r}: cannot write there ({e.strerror or e})") from None
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise UsageError(f"{what} {str(path)!r}: cannot write there (no permission)")
-
-
-def writable_file(path: Path, what: str) -> None:
-    """The file's folder must exist and be writable, and the file itself, if it exists."""
-    folder = path.parent
-    if path.is_dir():
-        raise UsageError(f"{what} {str(path)!r} is a folder, not a file")
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise UsageError(f"{what} {str(path)!r}: its folder {str(folder)!r} is missing or not writable")
-    if path.exists() and not os.access(path, os.W_OK):
-        raise UsageError(f"{what} {str(path)!r} is not writable")
 
 
 def _device_option(p: argparse.ArgumentParser) -> None:
@@ -470,38 +396,6 @@ def _device_option(p: argparse.ArgumentParser) -> None:
         help="where torch computes (default auto: CUDA where there is a GPU, else the CPU); a run "
         "records it, since CUDA's numbers are not the CPU's",
     )
-
-
-def _device(name: str) -> str:
-    """--device resolved to what a run records: "cpu" or "cuda" (a UsageError where it cannot be)."""
-    from .device import DeviceError, name_of, resolve
-
-    try:
-        return name_of(resolve(name))
-    except DeviceError as e:
-        raise UsageError(str(e)) from e
-
-
-def _frames(text: str) -> int:
-    """A frame count: an integer, underscores or a k/M suffix allowed (2M, 500k, 2_000_000)."""
-    scale = {"k": 1_000, "m": 1_000_000}.get(text[-1:].lower(), 1)
-    try:
-        n = round(float((text[:-1] if scale > 1 else text).replace("_", "")) * scale)
-    except (ValueError, OverflowError):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a frame count (e.g. 2000000, 2M, 500k)") from None
-    if not 1 <= n <= 10**12:
-        raise argparse.ArgumentTypeError(f"{text} is not in 1..10^12 frames")
-    return n
-
-
-def _episodes(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if not 1 <= n <= EPISODES_PER_TARGET:
-        raise argparse.ArgumentTypeError(f"{n} is not in 1..{EPISODES_PER_TARGET}")
-    return n
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -545,7 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="X,Z,HEADING,PITCH",
         help="start pose in metres and degrees (default: the world's initial pose)",
     )
-    p.add_argument("--seed", type=_seed, default=0, help="seed of the random actions (default 0)")
+    p.add_argument("--seed", type=arguments.seed, default=0, help="seed of the random actions (default 0)")
     p.add_argument(
         "--placement-seed",
         type=int,
@@ -572,7 +466,9 @@ def build_parser() -> argparse.ArgumentParser:
         "use; this does it up front, one process per core.",
     )
     p.add_argument("--kitchens", metavar="A,B", help="comma-separated kitchens (default: all 30)")
-    p.add_argument("--workers", type=_positive, default=None, help="processes (default: one per core)")
+    p.add_argument(
+        "--workers", type=arguments.positive, default=None, help="processes (default: one per core)"
+    )
     p.set_defaults(func=cmd_prepare)
 
     p = sub.add_parser(
@@ -609,13 +505,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--kitchens", metavar="A,B", help="only these kitchens (default: all of the split)")
     p.add_argument(
         "--episodes",
-        type=_episodes,
+        type=arguments.episodes,
         default=EPISODES_PER_TARGET,
         metavar="N",
         help=f"the first N fixed episodes of every target (default {EPISODES_PER_TARGET})",
     )
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a plugin option (repeatable)")
-    p.add_argument("--seed", type=_seed, default=0, help="seed of the policy (default 0)")
+    p.add_argument("--seed", type=arguments.seed, default=0, help="seed of the policy (default 0)")
     _runs_option(p)
     p.add_argument(
         "--run",
@@ -633,11 +529,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="also record episodes with rerun")
     p.add_argument(
-        "--record-episodes", type=_positive, default=2, metavar="N", help="episodes to record (default 2)"
+        "--record-episodes",
+        type=arguments.positive,
+        default=2,
+        metavar="N",
+        help="episodes to record (default 2)",
     )
     p.add_argument(
         "--record-steps",
-        type=_frames,
+        type=arguments.frames,
         metavar="N",
         help="end each recorded episode after N actions (default: the evaluation's cap)",
     )
@@ -656,8 +556,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--method", required=True, metavar="NAME", help="a learned plugin (see `kgnavbench methods`)"
     )
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a training option (repeatable)")
-    p.add_argument("--frames", type=_frames, default=10_000_000, help="frames (agent steps) to train")
-    p.add_argument("--seed", type=_seed, default=0, help="seed (default 0)")
+    p.add_argument(
+        "--frames", type=arguments.frames, default=10_000_000, help="frames (agent steps) to train"
+    )
+    p.add_argument("--seed", type=arguments.seed, default=0, help="seed (default 0)")
     p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")
     _runs_option(p)
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="record the training curves with rerun")
@@ -699,7 +601,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="where the tables go (default: the spec's folder, tables/)")
     p.add_argument(
         "--workers",
-        type=_positive,
+        type=arguments.positive,
         default=os.cpu_count() or 1,
         help="jobs (row x seed) run at once, each in its own process (default: one per core); the "
         "table is the same for any number, only the wall time differs",
@@ -729,10 +631,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     actions = p.add_subparsers(dest="action", required=True, parser_class=_Parser)
     q = actions.add_parser("pretrain", help="train the view encoder on the training kitchens' views")
-    q.add_argument("--epochs", type=_positive, default=8)
-    q.add_argument("--samples-per-epoch", type=_positive, default=16_000)
+    q.add_argument("--epochs", type=arguments.positive, default=8)
+    q.add_argument("--samples-per-epoch", type=arguments.positive, default=16_000)
     q.add_argument("--shift", type=int, default=4, help="random shift of the views in pixels (0: none)")
-    q.add_argument("--seed", type=_seed, default=0)
+    q.add_argument("--seed", type=arguments.seed, default=0)
     q.add_argument("--out", type=Path, help="where the weights go (default: the committed encoder file)")
     q = actions.add_parser("features", help="encode every state's view of the kitchens, cached")
     q.add_argument("kitchens", nargs="*", metavar="NAME", help="default: all 30")

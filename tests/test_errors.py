@@ -224,7 +224,7 @@ def test_json_stays_json_when_a_plugin_prints_and_cells_are_empty(capsys, local,
     record = json.loads(out)  # strict: json.loads would take NaN, so look for it too
     assert "NaN" not in out and "acting" in err
     assert record["summary"]["seen_seen/static"]["episodes"] > 0
-    from kgnavbench.cli import json_safe
+    from kgnavbench.arguments import json_safe
 
     assert (
         json.dumps(json_safe({"sr": float("nan"), "x": [float("inf"), 1.5]}))
