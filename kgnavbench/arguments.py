@@ -10,6 +10,7 @@ import os
 from pathlib import Path
 
 from .kitchens import KITCHEN_NAMES, check_name
+from .plugins import MAX_SEED
 from .tasks import EPISODES_PER_TARGET
 
 
@@ -43,27 +44,23 @@ def json_safe(value):
     return value
 
 
-def positive(text: str) -> int:
+def integer_in(text: str, low: int, high: int) -> int:
+    """An integer option's value, low..high (argparse reports the error with the option's name)."""
     try:
         n = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if not 1 <= n <= 256:
-        raise argparse.ArgumentTypeError(f"{n} is not in 1..256")
+    if not low <= n <= high:
+        raise argparse.ArgumentTypeError(f"{n} is not in {low}..{high}")
     return n
 
 
-MAX_SEED = 2**31 - 1  # every generator takes it, and seed * 1000 + kitchen stays within 64 bits
+def positive(text: str) -> int:
+    return integer_in(text, 1, 256)
 
 
 def seed(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 0 <= n <= MAX_SEED:
-        raise argparse.ArgumentTypeError(f"{n} is not in 0..{MAX_SEED}")
-    return n
+    return integer_in(text, 0, MAX_SEED)
 
 
 def writable_folder(path: Path, what: str) -> None:
@@ -111,10 +108,4 @@ def frames(text: str) -> int:
 
 
 def episodes(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if not 1 <= n <= EPISODES_PER_TARGET:
-        raise argparse.ArgumentTypeError(f"{n} is not in 1..{EPISODES_PER_TARGET}")
-    return n
+    return integer_in(text, 1, EPISODES_PER_TARGET)

@@ -43,7 +43,7 @@ from .files import (
     write_with_checksum,
 )
 from .kitchens import KITCHEN_NAMES, check_name
-from .plugins import Plugin, PluginError, PolicySpec, guarded, load_plugin
+from .plugins import MAX_SEED, Plugin, PluginError, PolicySpec, guarded, load_plugin
 from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks
 from .world import ACTIONS
 
@@ -60,7 +60,6 @@ LONG_PATH = 5
 # 2: all episodes of a kitchen in one env reset (a policy's random stream differs from format 1's)
 EVALUATION_FORMAT = 2
 SPLITS = ("table", "train", "val", "test")
-MAX_SEED = 2**31 - 1  # a kitchen's policy seed is seed * 1000 + its index
 # a training run's checkpoints that `eval --run` can test
 CHECKPOINT_MEANING = {"best": "best validation SR", "last": "the run's latest weights"}
 CHECKPOINTS = tuple(CHECKPOINT_MEANING)
@@ -215,21 +214,8 @@ def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) ->
         observations, _, terminations, truncations, infos = env.step(actions)
         for agent in list(observations):
             if terminations[agent] or truncations[agent]:
-                i, n = infos[agent], episode_of[agent]
-                finished[agent] = EpisodeResult(
-                    kitchen=kitchen,
-                    target=i["target"],
-                    kind=i["target_kind"],
-                    column=columns[n],
-                    start=episodes[n]["start"],
-                    max_steps=episodes[n]["max_steps"],
-                    success=i["success"],
-                    path_length=i["path_length"],
-                    shortest_path=i["shortest_path"],
-                    collisions=i["collisions"],
-                    last_view_shows_target=i["last_view_shows_target"],
-                    episode_length=i["episode_length"],
-                )
+                n = episode_of[agent]
+                finished[agent] = episode_result(kitchen, columns[n], episodes[n], infos[agent])
                 del observations[agent], infos[agent]
     return [finished[agent] for agent in agents]  # in episode order, not finishing order
 
@@ -248,22 +234,29 @@ def _run_batched(plugin, policy, env, kitchen: str, columns: list[str], episodes
         ended = terminated | truncated
         for j in np.flatnonzero(ended).tolist():
             n = int(live[j])
-            results[n] = EpisodeResult(
-                kitchen=kitchen,
-                target=str(infos["target"][j]),
-                kind=str(infos["target_kind"][j]),
-                column=columns[n],
-                start=episodes[n]["start"],
-                max_steps=episodes[n]["max_steps"],
-                success=bool(infos["success"][j]),
-                path_length=int(infos["path_length"][j]),
-                shortest_path=int(infos["shortest_path"][j]),
-                collisions=int(infos["collisions"][j]),
-                last_view_shows_target=bool(infos["last_view_shows_target"][j]),
-                episode_length=int(infos["episode_length"][j]),
-            )
+            info = {key: column[j] for key, column in infos.items()}
+            results[n] = episode_result(kitchen, columns[n], episodes[n], info)
         live = live[~ended]
     return results
+
+
+def episode_result(kitchen: str, column: str, episode: dict, info) -> EpisodeResult:
+    """An ended episode's result from the env's infos at its last step (a per-agent dict, or one
+    agent's row of the array infos: plain Python values either way, as the results file holds them)."""
+    return EpisodeResult(
+        kitchen=kitchen,
+        target=str(info["target"]),
+        kind=str(info["target_kind"]),
+        column=column,
+        start=episode["start"],
+        max_steps=episode["max_steps"],
+        success=bool(info["success"]),
+        path_length=int(info["path_length"]),
+        shortest_path=int(info["shortest_path"]),
+        collisions=int(info["collisions"]),
+        last_view_shows_target=bool(info["last_view_shows_target"]),
+        episode_length=int(info["episode_length"]),
+    )
 
 
 def check_action_array(plugin: Plugin, actions, n: int) -> np.ndarray:

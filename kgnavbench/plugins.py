@@ -61,6 +61,11 @@ class PluginError(ValueError):
     """A plugin that is missing, fails to import or breaks the interface; or a bad option."""
 
 
+# the largest seed of a run or an evaluation: every generator takes it, an evaluation's per-kitchen
+# seed (seed * 1000 + the kitchen's index) stays within 64 bits, and torchrun's ranks add 1,000,003 each
+MAX_SEED = 2**31 - 1
+
+
 @dataclass(frozen=True)
 class PolicySpec:
     """What a policy may know about the environment before it starts."""

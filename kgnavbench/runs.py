@@ -32,7 +32,7 @@ from .files import (
     write_with_checksum,
 )
 from .kitchens import KITCHEN_NAMES, check_name
-from .plugins import load_plugin
+from .plugins import MAX_SEED, load_plugin
 from .tasks import EPISODES_PER_TARGET, N_VAL_KITCHENS, load_task_file
 
 EXPERTS = ("walk_back", "shortest", "dagger")
@@ -169,7 +169,6 @@ class TrainOptions:
 
 
 MAX_AGENTS_PER_KITCHEN = 1024  # 20,480 agents over the training kitchens: more is a typo (and the memory)
-MAX_SEED = 2**31 - 1  # every generator takes it; torchrun's ranks add 1,000,003 per rank
 
 
 @dataclass(frozen=True)
