@@ -1,6 +1,7 @@
 """LSTM A3C: the paper's recurrent actor-critic, with its two training aids as options.
 
-Table I's rows "LSTM A3C" (no options), "+IL" (il=true), "+TSE" (tse=true) and "+IL+TSE". The network
+Table I's rows "LSTM A3C" (no options), "+IL" (il=true), "+TSE" (tse=true) and "+IL+TSE", and the
+control row of the graph, "+IL+TSE, object detections, no graph" (detections=true). The network
 (kgnavbench.models): the siamese layer over the frozen encoder's features of the view and of the target
 image, the fusion layer, an LSTM, policy and value heads. Training (kgnavbench.train): a synchronous
 batched A2C over all training kitchens' seen targets; `il` mixes in cross-entropy on expert
@@ -24,11 +25,21 @@ DESCRIPTION = "LSTM A3C over frozen view features (options il, tse: the paper's 
 
 @dataclass
 class Config(TrainOptions):
-    pass  # il and tse are TrainOptions fields, off by default
+    # il and tse are TrainOptions fields, off by default.
+    # the graph's control row "+IL+TSE, object detections, no graph": the network also receives the
+    # visible-type vectors R_t and R_g that the KG rows see, through one layer, with no GCN
+    detections: bool = False
 
 
 def model_config(config: Config) -> ModelConfig:
-    return ModelConfig(arch="lstm", kg="none", hidden=config.hidden, lstm=config.lstm, pixels=config.pixels)
+    return ModelConfig(
+        arch="lstm",
+        kg="none",
+        hidden=config.hidden,
+        lstm=config.lstm,
+        pixels=config.pixels,
+        detections=config.detections,
+    )
 
 
 def train(config: Config, run) -> None:

@@ -10,13 +10,14 @@
 3. TSE: `SubtargetSampler` samples, per episode, 5 sub-targets at random among the states that showed
    a novel object (a pickupable that is no target) or another agent's training target
    (`subtarget_types`); `relabel` makes each "reach this state and Stop", with its view as the target
-   image, rewards recomputed and a final Stop worth +10. The sampler's arrays checkpoint
-   (`state_dict`).
+   image, rewards recomputed and a final Stop worth +10; the LSTM state the agent had where the
+   relabelled episode begins is kept with it. The sampler's arrays checkpoint (`state_dict`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -106,6 +107,7 @@ class Sequences:
     goal: np.ndarray  # (N,) global state: the target image's state
     rewards: np.ndarray | None = None  # (N, L)
     behaviour: np.ndarray | None = None  # (N, L) behaviour policy's probability (NaN: not taken by it)
+    hidden: np.ndarray | None = None  # (N, 2, lstm) the LSTM state (h, c) before the first step; None: zeros
 
 
 def pad(seqs: list[tuple[list[int], list[int]]], goals, extra=None) -> Sequences:
@@ -175,23 +177,41 @@ def subtarget_types(space: StateSpace) -> np.ndarray:
     return eligible
 
 
+class Window(NamedTuple):
+    """A sub-target sampled by TSE: the steps of its episode that led to it (states, actions and the
+    behaviour policy's probabilities of those actions, chronological), the sub-target state, and the
+    agent's LSTM state (h, c) (2, lstm) before the window's relabelled part begins (its first step, or
+    the step after its last Stop) and before its last Stop (zeros where it holds none)."""
+
+    states: np.ndarray
+    actions: np.ndarray
+    probs: np.ndarray
+    goal: int
+    hidden: np.ndarray
+    stop_hidden: np.ndarray
+
+
 class SubtargetSampler:
     """TSE's sub-targets, sampled as the paper: per agent and episode, `k` of the steps that reached a
     state showing a sub-target object (`subtarget_types`), drawn uniformly at random among all such
     steps of the episode (reservoir sampling, Algorithm R, so the whole episode need not be kept).
-    Each kept step is stored with the window of at most `window` steps of its episode that led to it;
-    `finish` hands an ended episode's samples over for relabelling. Its arrays are its state."""
+    Each kept step is stored with the window of at most `window` steps of its episode that led to it
+    and the LSTM state the agent had where the relabelled episode begins, so that TSE replays it from
+    the state the agent acted in, not from zeros in mid-episode; `finish` hands an ended episode's
+    samples over for relabelling. Its arrays are its state."""
 
-    FIELDS = ("ring_state", "ring_action", "ring_prob", "episode_tick", "count", "slot_state",
-              "slot_action", "slot_prob", "slot_length", "slot_goal")  # fmt: skip
+    FIELDS = ("ring_state", "ring_action", "ring_prob", "ring_hidden", "episode_tick", "count", "slot_state",
+              "slot_action", "slot_prob", "slot_length", "slot_goal", "slot_hidden")  # fmt: skip
 
-    def __init__(self, n_agents: int, k: int, window: int):
+    def __init__(self, n_agents: int, k: int, window: int, hidden_size: int = 0):
         self.k, self.window = k, window
         shape = (n_agents, window)
-        # the last `window` steps of every agent (column tick % window): state before, action, its prob
+        # the last `window` steps of every agent (column tick % window): state before, action, its prob,
+        # the LSTM state (h, c) before the step
         self.ring_state = np.zeros(shape, np.int64)
         self.ring_action = np.zeros(shape, np.int64)
         self.ring_prob = np.zeros(shape, np.float64)
+        self.ring_hidden = np.zeros((*shape, 2, hidden_size), np.float32)
         self.episode_tick = np.zeros(n_agents, np.int64)  # the tick of the episode's first step
         self.count = np.zeros(n_agents, np.int64)  # sub-target steps met in this episode
         self.slot_state = np.zeros((n_agents, k, window), np.int64)  # chronological, right-aligned
@@ -199,16 +219,23 @@ class SubtargetSampler:
         self.slot_prob = np.zeros((n_agents, k, window), np.float64)
         self.slot_length = np.zeros((n_agents, k), np.int64)
         self.slot_goal = np.zeros((n_agents, k), np.int64)
+        # the LSTM states where the relabelled episode begins and before the window's last Stop
+        self.slot_hidden = np.zeros((n_agents, k, 2, 2, hidden_size), np.float32)
 
-    def step(self, tick, before, actions, probs, after, candidate, rng: np.random.Generator) -> None:
+    def step(
+        self, tick, before, actions, probs, after, candidate, rng: np.random.Generator, hidden=None
+    ) -> None:
         """Record one step of every agent; `candidate` marks the agents whose step reached a state
-        showing a sub-target object (a Stop reaches nothing new: the caller leaves Stops out)."""
+        showing a sub-target object (a Stop reaches nothing new: the caller leaves Stops out); `hidden`:
+        the agents' LSTM states (h, c) before the step, (n_agents, 2, lstm) (None without an LSTM)."""
         column = tick % self.window
         self.ring_state[:, column], self.ring_action[:, column], self.ring_prob[:, column] = (
             before,
             actions,
             probs,
         )
+        if hidden is not None:
+            self.ring_hidden[:, column] = hidden
         idx = np.flatnonzero(candidate)
         if not len(idx) or not self.k:
             return
@@ -228,20 +255,32 @@ class SubtargetSampler:
         self.slot_prob[idx, slot] = self.ring_prob[idx][:, columns]
         self.slot_length[idx, slot] = length
         self.slot_goal[idx, slot] = after[idx]
+        # where the relabelled episode begins: the window's first step, or the step after its last
+        # Stop (`Trainer.subtrajectories`); this step is no Stop, so that step lies in the window
+        position = np.arange(self.window)
+        stops = (self.slot_action[idx, slot] == STOP) & (position >= self.window - length[:, None])
+        last_stop = np.where(stops.any(1), self.window - 1 - np.argmax(stops[:, ::-1], 1), -1)
+        begin = np.maximum(self.window - length, last_stop + 1)
+        self.slot_hidden[idx, slot, 0] = self.ring_hidden[idx, columns[begin]]
+        self.slot_hidden[idx, slot, 1] = np.where(
+            (last_stop >= 0)[:, None, None], self.ring_hidden[idx, columns[np.maximum(last_stop, 0)]], 0.0
+        )
 
-    def finish(self, idx: np.ndarray, next_tick: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, int]]:
-        """The sampled windows (states, actions, behaviour probs, sub-target state) of the agents
-        whose episodes ended; their next episodes start at `next_tick` with nothing sampled."""
+    def finish(self, idx: np.ndarray, next_tick: int) -> list[Window]:
+        """The sampled windows of the agents whose episodes ended; their next episodes start at
+        `next_tick` with nothing sampled."""
         out = []
         for i in idx:
             for j in range(min(int(self.count[i]), self.k)):
                 n = int(self.slot_length[i, j])
                 out.append(
-                    (
+                    Window(
                         self.slot_state[i, j, -n:].copy(),
                         self.slot_action[i, j, -n:].copy(),
                         self.slot_prob[i, j, -n:].copy(),
                         int(self.slot_goal[i, j]),
+                        self.slot_hidden[i, j, 0].copy(),
+                        self.slot_hidden[i, j, 1].copy(),
                     )
                 )
         self.count[idx] = 0

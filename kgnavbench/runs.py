@@ -99,7 +99,9 @@ class TrainOptions:
     # paper's IL: it learns far more, e.g. 91% seen/seen SR against the paper's 8%)
     il_expert: str = "walk_back"
     il_walk: int = 25  # the walk back is 10..il_walk steps long (drawn per target), as the training starts
-    il_frames: int = 2_000_000  # IL is mixed into the loss until this many frames ("online")
+    # IL is mixed into the loss over this fraction of the run's frames ("online and before a certain
+    # number of time steps"), as start_curriculum is a fraction: one meaning for both
+    il_fraction: float = 1.0
     il_batch: int = 32  # expert trajectories per update
     il_weight: float = 1.0
     # target skill extension: relabelled sub-trajectories of the agents' own episodes
@@ -160,12 +162,11 @@ class TrainOptions:
                 raise TrainError(f"{name} must be at most {most}, not {getattr(self, name)}")
         if not (0 < self.gamma <= 1 and self.lr > 0 and self.max_grad_norm > 0):
             raise TrainError("need 0 < gamma <= 1, lr > 0 and max_grad_norm > 0")
-        if min(self.tse_subtargets, self.il_frames, self.stop_ends_from or 0) < 0:
-            raise TrainError("tse_subtargets, il_frames and stop_ends_from must not be negative")
-        if not 0 <= self.start_curriculum <= 1:
-            raise TrainError(
-                f"start_curriculum is a fraction of the run, 0 to 1, not {self.start_curriculum}"
-            )
+        if min(self.tse_subtargets, self.stop_ends_from or 0) < 0:
+            raise TrainError("tse_subtargets and stop_ends_from must not be negative")
+        for name in ("start_curriculum", "il_fraction"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise TrainError(f"{name} is a fraction of the run, 0 to 1, not {getattr(self, name)}")
 
 
 MAX_AGENTS_PER_KITCHEN = 1024  # 20,480 agents over the training kitchens: more is a typo (and the memory)

@@ -25,7 +25,7 @@ import json
 import math
 import random
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from . import distributed, encoder, models
-from .agent import Model, detached, keep_rows, run_episodes
+from .agent import Model, detached, keep_rows, rows_of, run_episodes
 from .env import reward
 from .files import atomic_write, duration_text
 from .graph import STOP
@@ -52,6 +52,7 @@ from .losses import (
     relabel,
     subtarget_types,
 )
+from .models import N_ACTIONS
 from .runs import CHECKPOINT_FORMAT, Run, TrainError, TrainOptions, load_checkpoint, save_checkpoint
 from .tasks import load_task_file
 from .vecenv import CURRICULUM_REACH, NavigationVectorEnv, StateSpace, build_space
@@ -76,6 +77,27 @@ METRICS = (
 
 # ------------------------------------------------------------------------------------------------
 # 1. The trainer
+
+
+@dataclass
+class Rollout:
+    """n steps of B agents as acting saw them (`Trainer.collect`); the learning pass replays them."""
+
+    states: np.ndarray  # (n, B) the state each step acted in
+    targets: np.ndarray  # (n, B) its target row
+    actions: np.ndarray  # (n, B)
+    # (n, B) the env's rewards (less a wrong Stop's penalty); a step that reached the cap also gains
+    # gamma V(the state it reached)
+    rewards: np.ndarray
+    dones: np.ndarray  # (n, B) 1.0 where the episode ended at that step, by the task or by the cap
+    truncated: np.ndarray  # (n, B) True where it ended by the cap only
+    histories: np.ndarray | None  # (n, B, history) FF's frames
+    scene: np.ndarray | None  # (B,) FF's training-kitchen index
+    start_hidden: tuple | None  # the LSTM state before the first step
+    bootstrap: torch.Tensor  # (B,) V of the state after the last step
+    logits: torch.Tensor  # (n, B, 10) the acting pass's
+    values: torch.Tensor  # (n, B)
+    windows: list  # TSE: the sub-target windows (losses.Window) of the episodes that ended
 
 
 class Trainer:
@@ -147,7 +169,8 @@ class Trainer:
         # TSE: the sub-targets sampled per episode; a rollout hands the windows of the episodes that
         # ended in it to the update's relabelling
         self.tick = 0  # steps of the run (every agent steps at each tick)
-        self.tse = SubtargetSampler(n_agents, options.tse_subtargets, options.tse_window)
+        lstm_size = self.model_config.lstm if not self.ff else 0
+        self.tse = SubtargetSampler(n_agents, options.tse_subtargets, options.tse_window, lstm_size)
         self.subtarget_types = subtarget_types(self.space)
         self.il = options.il or not rl
         self.dagger = self.il and options.il_expert == "dagger"
@@ -173,7 +196,7 @@ class Trainer:
         graph = self.model.graph()
         loss = torch.zeros((), device=self.device)
         windows: list = []  # TSE: the sub-target windows of the episodes that end in this rollout
-        imitate = self.il and (not self.rl or self.frames < self.opts.il_frames)
+        imitate = self.il and (not self.rl or self.frames < self.opts.il_fraction * self.run.frames)
         self.envs.stop_ends = self.opts.stop_ends_from is not None and self.frames >= self.opts.stop_ends_from
         if self.rl or self.dagger:
             rl_loss, il_loss, windows = self.rollout(graph, imitate and self.dagger)
@@ -207,13 +230,10 @@ class Trainer:
         self.updates += 1
         distributed.check_replicas(self.model.net.parameters(), self.ranks, self.updates)
 
-    def rollout(self, graph, imitate: bool = False) -> tuple[torch.Tensor, torch.Tensor | None, list]:
-        """n steps of every agent, then the learning pass over them; returns the A2C loss of the
-        rollout, when `imitate` the cross-entropy of the teacher's actions on every visited state
-        (DAgger), and (TSE) the sub-target windows of the episodes that ended. The steps run without
-        autograd (acting needs no graph); `Model.unroll` then replays the same states with autograd,
-        the non-recurrent layers once for all n x B rows, which costs far fewer small operations than
-        a graph built step by step."""
+    def collect(self, graph) -> Rollout:
+        """n steps of every agent, without autograd (acting needs no graph): what they saw and did,
+        and the acting pass's logits and values. The ended episodes' TSE windows come with it; new
+        episodes are drawn in the rollout itself."""
         opts, nav, space = self.opts, self.nav, self.space
         n, b = opts.n_steps, nav.n
         states = np.zeros((n, b), np.int64)
@@ -223,6 +243,9 @@ class Trainer:
         histories = np.zeros((n, b, self.model_config.history), np.int64) if self.ff else None
         rewards = np.zeros((n, b), np.float32)
         dones = np.zeros((n, b), np.float32)
+        truncations = np.zeros((n, b), bool)
+        logits_seen = torch.zeros(n, b, N_ACTIONS, device=self.device)
+        values_seen = torch.zeros(n, b, device=self.device)
         windows = []
         start_hidden = hidden = detached(self.hidden)
         scene = nav.kitchen if self.ff else None
@@ -232,7 +255,11 @@ class Trainer:
                 if self.ff:
                     histories[t] = self.history
                 goals = space.destination[nav.target]
-                logits, _, hidden, _ = self.model(space, nav.state, goals, hidden, graph, scene, self.history)
+                before_hidden = hidden
+                logits, value, hidden, _ = self.model(
+                    space, nav.state, goals, hidden, graph, scene, self.history
+                )
+                logits_seen[t], values_seen[t] = logits, value
                 probs = F.softmax(logits, -1)
                 action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
                 a = action.cpu().numpy()
@@ -243,13 +270,36 @@ class Trainer:
                 if opts.wrong_stop_penalty:
                     r = r - opts.wrong_stop_penalty * ((a == STOP) & ~nav.success)
                 done = terminated | truncated
+                self.stats["reward"] += float(r.sum())
                 rewards[t], dones[t] = r, done
+                cut = np.flatnonzero(truncated & ~terminated)
+                if len(cut):
+                    # a time limit is no end of the task: the return goes on past the cap, so the
+                    # last step's reward gains gamma V(the state it reached), as Stable-Baselines3 does
+                    # (the episode still ends here: nothing after it belongs to it)
+                    truncations[t, cut] = True
+                    history = None
+                    if self.ff:
+                        history = np.concatenate([self.history[cut, 1:], nav.state[cut, None]], 1)
+                    _, after, _, _ = self.model(
+                        space,
+                        nav.state[cut],
+                        space.destination[nav.target[cut]],
+                        rows_of(hidden, cut),
+                        graph,
+                        None if scene is None else scene[cut],
+                        history,
+                    )
+                    rewards[t, cut] += opts.gamma * after.cpu().numpy()
                 if opts.tse:
                     candidate = (a != STOP) & (
                         space.objects[nav.state] & self.subtarget_types[nav.target]
                     ).any(1)
                     taken = probs.gather(1, action[:, None]).squeeze(1).cpu().numpy()
-                    self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng)
+                    lstm_state = None
+                    if before_hidden is not None:
+                        lstm_state = torch.stack(before_hidden, 1).float().cpu().numpy()
+                    self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng, lstm_state)
                 self.tick += 1
                 finished = np.flatnonzero(done)
                 if len(finished):
@@ -277,22 +327,36 @@ class Trainer:
                 covis.counts = before + distributed.sum_tensor(covis.counts - before, self.ranks)
         self.frames += n * self.total_agents  # every rank's agents stepped n times
         self.stats["frames"] += n * b  # this rank's (metrics sum the ranks')
-        self.stats["reward"] += float(rewards.sum())
-        # the learning pass: the same n steps again, with autograd
-        keep = self.model.tensor(1.0 - dones)
+        return Rollout(
+            states, targets, actions, rewards, dones, truncations, histories, scene, start_hidden,
+            bootstrap, logits_seen, values_seen, windows,
+        )  # fmt: skip
+
+    def rollout(self, graph, imitate: bool = False) -> tuple[torch.Tensor, torch.Tensor | None, list]:
+        """n steps of every agent (`collect`), then the learning pass over them; returns the A2C loss
+        of the rollout, when `imitate` the cross-entropy of the teacher's actions on every visited
+        state (DAgger), and (TSE) the sub-target windows of the episodes that ended. `Model.unroll`
+        replays the rollout's states with autograd, the non-recurrent layers once for all n x B rows,
+        which costs far fewer small operations than a graph built step by step."""
+        opts, space = self.opts, self.space
+        ro = self.collect(graph)
+        n, b = ro.states.shape
+        keep = self.model.tensor(1.0 - ro.dones)
+        goals = space.destination[ro.targets]
         logits, values = self.model.unroll(
-            space, states, space.destination[targets], start_hidden, keep, graph, scene, histories
+            space, ro.states, goals, ro.start_hidden, keep, graph, ro.scene, ro.histories
         )
         log_p = F.log_softmax(logits, -1)
-        taken = log_p.gather(2, self.model.tensor(actions)[..., None]).squeeze(2)
+        taken = log_p.gather(2, self.model.tensor(ro.actions)[..., None]).squeeze(2)
         entropies = -(log_p.exp() * log_p).sum(-1)
-        returns = n_step_returns(self.model.tensor(rewards), self.model.tensor(dones), bootstrap, opts.gamma)
+        tensor = self.model.tensor
+        returns = n_step_returns(tensor(ro.rewards), tensor(ro.dones), ro.bootstrap, opts.gamma)
         loss, _ = actor_critic_loss(taken, values, entropies, returns, opts.value_weight, opts.entropy)
         il = None
         if imitate:
-            optimal, known = optimal_actions(space, targets.reshape(-1), states.reshape(-1))
+            optimal, known = optimal_actions(space, ro.targets.reshape(-1), ro.states.reshape(-1))
             il = optimal_action_loss(log_p.reshape(n * b, -1), optimal, known).mean()
-        return loss, il, windows
+        return loss, il, ro.windows
 
     def reach(self) -> int | None:
         """The curriculum's farthest start (actions from the destination) at this frame; None: off or over."""
@@ -303,13 +367,14 @@ class Trainer:
 
     def subtrajectories(self, windows: list) -> Sequences | None:
         """Up to tse_batch of the sub-target windows of the episodes that ended during a rollout,
-        relabelled; the rest are dropped."""
+        relabelled; the rest are dropped. `Sequences.hidden` holds the LSTM state each relabelled
+        episode starts from: the one the agent had there."""
         if not windows:
             return None
         take = self.rng.choice(len(windows), min(self.opts.tse_batch, len(windows)), replace=False)
-        seqs, goals, rewards, behaviour = [], [], [], []
+        seqs, goals, rewards, behaviour, hidden = [], [], [], [], []
         for j in sorted(take):
-            states, actions, probs, goal = windows[j]
+            states, actions, probs, goal, start, stop = windows[j]
             # the relabelled episode starts after the window's last Stop: in the task "reach the
             # sub-target and Stop" that Stop ended the episode (a failure), so the walk after it is
             # the whole episode; keeping it would reward a wrong Stop with the sub-target's +10. The
@@ -323,6 +388,7 @@ class Trainer:
                     goals.append(goal)
                     rewards.append(reward(np.zeros(1, bool), np.zeros(1, bool)))
                     behaviour.append(probs[last : last + 1].astype(np.float64))
+                    hidden.append(stop)
                 states, actions, probs = states[last + 1 :], actions[last + 1 :], probs[last + 1 :]
             if len(actions) == 0:
                 continue
@@ -331,6 +397,7 @@ class Trainer:
             goals.append(goal)
             rewards.append(r)
             behaviour.append(mu)
+            hidden.append(start)
         if not seqs:
             return None
         seq = pad(seqs, goals)
@@ -338,11 +405,12 @@ class Trainer:
         seq.behaviour = np.full(seq.states.shape, np.nan)
         for i, (r, mu) in enumerate(zip(rewards, behaviour)):
             seq.rewards[i, : len(r)], seq.behaviour[i, : len(mu)] = r, mu
+        seq.hidden = np.stack(hidden)  # (N, 2, lstm)
         return seq
 
     def sequence_pass(self, seq: Sequences, graph):
-        """A separate pass of the model over padded sequences from a zero state: logits (L, N, 10),
-        values (L, N)."""
+        """A separate pass of the model over padded sequences, from the LSTM states `seq.hidden` (zeros
+        where None): logits (L, N, 10), values (L, N)."""
         n, length = seq.states.shape
         states = np.ascontiguousarray(seq.states.T)
         goals = np.broadcast_to(seq.goal, (length, n))
@@ -352,6 +420,9 @@ class Trainer:
             history = np.ascontiguousarray(np.transpose(seq.states[:, np.clip(back, 0, None)], (1, 0, 2)))
         scene = self.space.kitchen_of[seq.states[:, 0]] if self.ff else None
         hidden = self.model.net.initial_state(n, self.device)
+        if hidden is not None and seq.hidden is not None:
+            start = self.model.tensor(seq.hidden)
+            hidden = (start[:, 0].to(hidden[0].dtype), start[:, 1].to(hidden[1].dtype))
         return self.model.unroll(self.space, states, goals, hidden, None, graph, scene, history)
 
     def imitation(self, graph) -> tuple[torch.Tensor, int]:
@@ -388,6 +459,10 @@ class Trainer:
         )
         weights = None
         if self.opts.tse_importance:
+            # min(1, pi/mu) on the steps the agent took. The appended Stop has no mu (the agent never
+            # took it there) and keeps weight 1: it is the relabelled task's one demonstration of
+            # success, and weighting it by pi would scale its gradient by pi(Stop), least where it
+            # is most needed
             mu = tensor(seq.behaviour.T).float()
             ratio = (taken.detach().exp() / mu).clamp(max=1.0)
             weights = torch.where(torch.isnan(mu), torch.ones_like(ratio), ratio)

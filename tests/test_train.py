@@ -155,7 +155,7 @@ def test_subtarget_sampler_keeps_a_uniform_sample_of_k_per_episode():
             tick += 1
         windows = sampler.finish(np.array([0]), tick)
         assert len(windows) == k
-        for states, actions, probs, goal in windows:
+        for states, actions, probs, goal, _, _ in windows:
             step = goal - 200
             kept[step] += 1
             n = min(3, step + 1)  # the window never reaches into the previous episode
@@ -275,7 +275,8 @@ def test_lstm_state_is_reset_at_episode_boundaries(tmp_path, floorplan1_tasks):
     original = net.forward
 
     def spy(*args, **kwargs):
-        seen_states.append(tuple(h.detach().clone() for h in args[4]))
+        if args[4][0].shape[0] == trainer.nav.n:  # the acting passes, not a truncation's V(s) of one agent
+            seen_states.append(tuple(h.detach().clone() for h in args[4]))
         return original(*args, **kwargs)
 
     net.forward = spy
@@ -640,3 +641,107 @@ def test_batched_evaluation_acts_as_the_dict_interface(capsys, tmp_path, floorpl
     finally:
         plugins.Plugin.make_policy = make_policy
     assert batched == per_agent and len(batched) == 2 * len(floorplan1_tasks.targets)
+
+
+# ----------------------------------------------------------------------------------------------------
+# sound learning: the unroll replays the rollout, a time limit bootstraps, TSE replays from the state
+
+
+@pytest.mark.parametrize(
+    "method_config",
+    [
+        models.ModelConfig(lstm=32, hidden=32),
+        models.ModelConfig(lstm=32, hidden=32, kg="attention", gcn=16),
+        models.ModelConfig(lstm=32, hidden=32, detections=True, gcn=16),
+        models.ModelConfig(arch="ff", hidden=32),
+    ],
+    ids=["lstm", "kg_attention", "detections", "ff"],
+)
+def test_unroll_gives_the_rollouts_logits_and_values_step_for_step(tmp_path, floorplan1_tasks, method_config):
+    """The learning pass (`Model.unroll`, all steps at once, the LSTM state zeroed where an episode
+    ended) computes what acting computed step by step: the same logits and values at every step,
+    across episode ends."""
+    trainer = train.Trainer(tiny_run(tmp_path), tiny_options(n_steps=12), method_config, True)
+    trainer.collect(trainer.model.graph())  # the LSTM states are nonzero now
+    trainer.nav.cap[:3] = trainer.nav.steps[:3] + np.array([2, 5, 9])  # three episodes end inside
+    graph = trainer.model.graph()
+    ro = trainer.collect(graph)
+    assert ro.dones[:, :3].sum() >= 3 and ro.truncated[[1, 4, 8], [0, 1, 2]].all()
+    keep = trainer.model.tensor(1.0 - ro.dones)
+    goals = trainer.space.destination[ro.targets]
+    with torch.no_grad():
+        logits, values = trainer.model.unroll(
+            trainer.space, ro.states, goals, ro.start_hidden, keep, graph, ro.scene, ro.histories
+        )
+    assert torch.allclose(logits, ro.logits, atol=1e-5) and torch.allclose(values, ro.values, atol=1e-5)
+
+
+def test_a_truncated_episode_bootstraps_from_the_value_of_its_last_state(tmp_path, floorplan1_tasks):
+    """Reaching the cap is no end of the task: that step's reward gains gamma V(the state it reached)
+    (as Stable-Baselines3), and the episode still ends there (done). Steps that did not reach the cap
+    keep the env's reward."""
+    trainer = train.Trainer(
+        tiny_run(tmp_path), tiny_options(n_steps=8), models.ModelConfig(lstm=32, hidden=32), True
+    )
+    net = trainer.model.net
+    with torch.no_grad():  # V(s) = 3 everywhere
+        for p in net.value.parameters():
+            p.zero_()
+        net.value.bias.fill_(3.0)
+    trainer.nav.cap[:] = trainer.nav.steps + 4  # every running episode reaches the cap at step 4
+    ro = trainer.collect(None)
+    gamma = trainer.opts.gamma
+    cut = ro.truncated
+    assert cut[3].sum() > 0 and ro.dones[cut].all()
+    # the env's reward of a step is -0.01, 0 (a goal state first reached) or 9.99 / 10 (success)
+
+    def among(values, allowed):
+        return (np.abs(values[:, None] - np.array(allowed)[None]) < 1e-5).any(1).all()
+
+    assert among(ro.rewards[cut] - gamma * 3.0, [-0.01, 0.0])
+    assert among(ro.rewards[~cut], [-0.01, 0.0, 9.99, 10.0])
+    # the return of a truncated step is its reward alone: the next step belongs to a new episode
+    returns = losses.n_step_returns(
+        torch.from_numpy(ro.rewards), torch.from_numpy(ro.dones), ro.bootstrap, gamma
+    )
+    t, i = np.argwhere(cut)[0]
+    assert returns[t, i].item() == pytest.approx(float(ro.rewards[t, i]))
+
+
+def test_tse_windows_keep_the_lstm_state_where_the_relabelled_episode_begins():
+    """A window carries the LSTM state the agent had before its first step, or before the step
+    after its last Stop, and before that Stop."""
+    k, window, size = 3, 4, 2
+    sampler = losses.SubtargetSampler(1, k, window, hidden_size=size)
+    rng = np.random.default_rng(0)
+    actions = [1, STOP, 2, 3, 4, 5]  # the step at tick 1 is a Stop
+    for tick, a in enumerate(actions):
+        hidden = np.full((1, 2, size), float(tick))  # the state before the step at `tick` is `tick`
+        candidate = np.array([tick in (0, 3, 5)])
+        sampler.step(tick, np.array([10 + tick]), np.array([a]), np.array([0.5]),
+                     np.array([20 + tick]), candidate, rng, hidden)  # fmt: skip
+    first, second, third = sampler.finish(np.array([0]), len(actions))
+    assert first.states.tolist() == [10] and first.hidden[0, 0] == 0.0 and not first.stop_hidden.any()
+    # tick 3: the window 0..3 holds a Stop at tick 1: the relabelled episode begins at tick 2
+    assert second.states.tolist() == [10, 11, 12, 13] and (second.hidden == 2.0).all()
+    assert (second.stop_hidden == 1.0).all()
+    # tick 5: the window 2..5, no Stop in it: it begins at tick 2
+    assert third.states.tolist() == [12, 13, 14, 15] and (third.hidden == 2.0).all()
+    assert not third.stop_hidden.any()
+
+
+def test_tse_replays_from_the_stored_lstm_state(tmp_path, floorplan1_tasks):
+    """The relabelled sub-trajectories start from the LSTM state stored with their window: replayed
+    from it they give other logits than from zeros."""
+    options = tiny_options(tse=True, episode_cap=30, n_steps=10)
+    trainer = train.Trainer(tiny_run(tmp_path), options, models.ModelConfig(lstm=32, hidden=32), True)
+    for _ in range(40):
+        seq = trainer.subtrajectories(trainer.collect(None).windows)
+        if seq is not None and np.abs(seq.hidden).sum() > 0:
+            break
+    assert seq is not None and seq.hidden.shape == (len(seq.goal), 2, 32) and np.abs(seq.hidden).sum() > 0
+    with torch.no_grad():
+        stored, _ = trainer.sequence_pass(seq, None)
+        seq.hidden = None
+        zeros, _ = trainer.sequence_pass(seq, None)
+    assert not torch.allclose(stored, zeros)
