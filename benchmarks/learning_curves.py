@@ -1,99 +1,205 @@
-"""Learning curves of Table I's learned LSTM rows: validation SR (and SPL) every `--every` frames.
+"""Learning curves of Table I's learned rows under a preset's schedule: the SR of weight snapshots kept
+every `--every` frames, on the fixed episodes at Table I's caps and rule.
 
-Trains Table I's rows LSTM A3C, +IL, +TSE, +IL+TSE, +KG and +KG+Attention, each with its options
-from tables/table1.toml, on the 20 training kitchens (or the given ones) into RUNS/train/ (resumable;
-a finished run is reused), then prints one line per run with its
-validation SR and SPL (%) at every validation, on the first 5 validation kitchens and `--episodes`
-fixed episodes per target, cap 1000. With `--seen`, it also evaluates each run's best-validation
-checkpoint (`best.pt`, Table I's rule) and its final weights (`last.pt`) on the training kitchens'
-seen targets (2 fixed episodes per target, cap 100), as `kgnavbench eval --run DIR --checkpoint
-best|last --split train --episodes 2` does, and prints their seen/seen SR. Rows run one after another:
-never beside another benchmark.
+For each row (default +IL+TSE and +KG+Attention) and seed it trains the row under the preset's `set`
+from tables/table1.toml (default: the paper preset, 40M frames), with `--set` overrides (a candidate
+schedule) and snapshots kept every `--every` frames (`keep_every`), into RUNS/train/ (resumable; a
+finished run is reused: with the paper preset's own options these are the table's runs). Then it
+evaluates every snapshot, and the run's best.pt (Table I's checkpoint rule) and last.pt, as
+`kgnavbench eval --run DIR --checkpoint frames-N --split train --episodes E` does (evaluations are
+resumed and reused too): seen kitchens with seen targets (static and actionable, cap 100) and with
+unseen targets (static, cap 1000). The validation SR is the run's own at that snapshot (metrics.csv).
 
-    python benchmarks/learning_curves.py --frames 10M --every 1M --agents 4
-    python benchmarks/learning_curves.py --frames 10M --every 1M --agents 4 --rows +KG+Attention --seen
+It writes OUT.csv (columns row, seed, frames, seen_seen_static_sr, seen_seen_actionable_sr,
+seen_unseen_static_sr, val_sr, checkpoint) and OUT.png (the curves, the paper's 40M numbers marked),
+and prints the table. Rows run one after another in one process: to use two cores, run two processes
+with different `--rows` and the same `--runs`, then once more with all rows (it only evaluates and
+draws). Never beside a speed benchmark.
+
+    python benchmarks/learning_curves.py --runs ~/kgnav-runs --rows +IL+TSE          # one core
+    python benchmarks/learning_curves.py --runs ~/kgnav-runs --rows +KG+Attention    # the other
+    python benchmarks/learning_curves.py --runs ~/kgnav-runs --out docs/figures/learning_curves_paper
+    python benchmarks/learning_curves.py --runs ~/kgnav-runs --set start_curriculum=0.05 \\
+        --out docs/figures/learning_curves_short_curriculum        # a candidate schedule
+    python benchmarks/learning_curves.py --preset smoke --frames 2000 --every 1000 --episodes 1 \\
+        --runs /tmp/lc --out /tmp/lc/curves                       # seconds: the script itself
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import math
+import re
 import time
 from pathlib import Path
 
 from kgnavbench.arguments import frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
 from kgnavbench.evaluate import EvalConfig, evaluate
+from kgnavbench.figures import curves_figure
 from kgnavbench.runs import train_method
 from kgnavbench.table_spec import load_spec
 
-ROWS = [
-    (row.name, row.method, row.options)
-    for row in load_spec().rows
-    if row.method in ("lstm_a3c", "kg_attention")
-]
+COLUMNS = (
+    "row",
+    "seed",
+    "frames",
+    "seen_seen_static_sr",
+    "seen_seen_actionable_sr",
+    "seen_unseen_static_sr",
+    "val_sr",
+    "checkpoint",  # frames-N (a snapshot), best (Table I's rule) or last
+)
+CELLS = {  # column of the CSV: (Table I column, kind)
+    "seen_seen_static_sr": ("seen_seen", "static"),
+    "seen_seen_actionable_sr": ("seen_seen", "actionable"),
+    "seen_unseen_static_sr": ("seen_unseen", "static"),
+}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--frames", type=frame_count, default="10M", help="frames per run (10M, 500k)")
-    parser.add_argument("--every", type=frame_count, default="1M", help="frames between validations")
-    parser.add_argument("--agents", default="4", help="agents per training kitchen")
-    parser.add_argument("--episodes", default="2", help="fixed episodes per validation target")
-    parser.add_argument("--rows", default="", help="only these rows, e.g. '+IL,+KG'")
-    parser.add_argument("--kitchens", default="", help="training kitchens (default: all 20)")
-    parser.add_argument("--runs", type=Path, default=Path("runs"))
     parser.add_argument(
-        "--seen", action="store_true", help="also the seen/seen SR of each run's best.pt and last.pt"
+        "--preset", default="paper", help="the table spec's preset whose `set` is the schedule"
     )
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="K=V", help="override a training option"
+    )
+    parser.add_argument("--rows", default="+IL+TSE,+KG+Attention", help="Table I rows, comma-separated")
+    parser.add_argument("--seeds", default="0", help="training seeds, comma-separated")
+    parser.add_argument(
+        "--frames", type=frame_count, default=None, help="frames per run (default: the preset's)"
+    )
+    parser.add_argument(
+        "--every",
+        type=frame_count,
+        default=None,
+        help="frames between snapshots (default: the preset's keep_every, else 5M)",
+    )
+    parser.add_argument("--episodes", type=int, default=5, help="fixed episodes per target (of 100)")
+    parser.add_argument("--runs", type=Path, default=Path("runs"))
+    parser.add_argument("--out", type=Path, default=None, help="OUT.csv and OUT.png (default: print only)")
     args = parser.parse_args()
-    frames, every = args.frames, args.every
-    rows = [r for r in ROWS if not args.rows or r[0] in args.rows.split(",")]
-    kitchens = tuple(k for k in args.kitchens.split(",") if k)
-    common = {
-        "agents_per_kitchen": args.agents,
-        "val_every": str(every),
-        "log_every": str(min(every, 1_000_000)),
-        "val_episodes": args.episodes,
-    }
-    curves = []
-    for name, method, options in rows:
-        start = time.perf_counter()
-        directory = train_method(
-            method, {**common, **options}, frames, 0, kitchens, args.runs, progress=lambda line: None
+    spec = load_spec()
+    if args.preset not in spec.presets:
+        parser.error(f"unknown preset {args.preset!r}; the spec has {', '.join(spec.presets)}")
+    preset = spec.presets[args.preset]
+    rows = {r.name: r for r in spec.rows}
+    names = [n for n in args.rows.split(",") if n]
+    unknown = [n for n in names if n not in rows]
+    if unknown:
+        parser.error(f"unknown rows {unknown}; the spec has {', '.join(rows)}")
+    overrides = dict(kv.split("=", 1) for kv in args.set)
+    frames = args.frames or preset.frames
+    kitchens = tuple(preset.train_kitchens)
+    points = []
+    for name in names:
+        row = rows[name]
+        for seed in (int(s) for s in args.seeds.split(",")):
+            # the table's own options (its runs are reused), snapshots as asked, the candidate's changes
+            if args.every:
+                overrides["keep_every"] = str(args.every)
+            options = {**preset.options, **row.options, **overrides}
+            options.setdefault("keep_every", str(args.every or 5_000_000))
+            start = time.perf_counter()
+            directory = train_method(row.method, options, frames, seed, kitchens, args.runs, progress=print)
+            print(
+                f"{name} (seed {seed}): trained in {time.perf_counter() - start:.0f} s: {directory}",
+                flush=True,
+            )
+            points += curve(name, row.method, options, seed, directory, args.episodes, args.runs, kitchens)
+    print(" | ".join(COLUMNS))
+    for p in points:
+        print(" | ".join(str(p[c]) for c in COLUMNS))
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with open(args.out.with_suffix(".csv"), "w", newline="") as f:
+            writer = csv.DictWriter(f, COLUMNS)
+            writer.writeheader()
+            writer.writerows(points)
+        figure(
+            points, {n: rows[n].paper for n in names}, args.out.with_suffix(".png"), args.preset, overrides
         )
-        with open(directory / "metrics.csv", newline="") as f:
-            points = [r for r in csv.DictReader(f) if r["val_sr"]]
-        line = "  ".join(f"{int(r['frames']) / 1e6:.1f}M {float(r['val_sr']):5.1f}" for r in points)
-        curves.append((name, line, points))
-        seconds = time.perf_counter() - start
-        print(f"{name:14s} validation SR (%) at frames: {line}   ({seconds:.0f} s)", flush=True)
-        if args.seen:
-            for which in ("best", "last"):
-                seen = seen_sr(method, {**common, **options}, directory, which, kitchens, args.runs)
-                print(f"{name:14s} {seen}", flush=True)
-    print(f"\n{frames:,} frames per run, {args.agents} agents per kitchen; SR / SPL (%) per validation")
-    for name, _, points in curves:
-        cells = " | ".join(f"{float(r['val_sr']):.1f} / {float(r['val_spl']):.1f}" for r in points)
-        print(f"| {name} | {cells} |")
+        print(f"wrote {args.out.with_suffix('.csv')} and {args.out.with_suffix('.png')}")
 
 
-def seen_sr(method: str, options: dict, directory: Path, which: str, kitchens, runs: Path) -> str:
-    """The seen/seen SR and SPL of one of a run's checkpoints on its training kitchens' seen targets."""
-    config = EvalConfig(
-        method=method,
-        options=tuple(sorted(options.items())),
-        split="train",
-        kitchens=kitchens,
-        episodes_per_target=2,
-        run=str(directory),
-        checkpoint=which,
+def curve(name, method, options, seed, directory: Path, episodes: int, runs: Path, kitchens=()) -> list[dict]:
+    """One point per snapshot (then best and last) of a trained run."""
+    val = validation_sr(directory)
+    snapshots = sorted(
+        (int(m.group(1)), p.stem)
+        for p in (directory / "snapshots").glob("frames-*.pt")
+        if (m := re.fullmatch(r"frames-(\d+)", p.stem))
     )
-    run = evaluate(config, runs, progress=lambda line: None)
-    cells = []
-    for kind in ("static", "actionable"):
-        m = run.summary[("seen_seen", kind)]
-        cells.append(f"{kind} SR {m.sr:.2f} SPL {m.spl:.2f} ({m.episodes} episodes)")
-    return f"seen/seen, {which}.pt: " + ", ".join(cells)
+    with open(directory / "metrics.csv", newline="") as f:
+        final = max((int(row["frames"]) for row in csv.DictReader(f)), default=0)
+    checkpoints = [*snapshots, (best_frames(directory), "best"), (final, "last")]
+    out = []
+    for at, which in checkpoints:
+        config = EvalConfig(
+            method=method,
+            options=tuple(sorted(options.items())),
+            split="train",
+            kitchens=kitchens,  # the run's training kitchens (empty: all 20)
+            episodes_per_target=episodes,
+            run=str(directory),
+            checkpoint=which,
+        )
+        start = time.perf_counter()
+        summary = evaluate(config, runs, progress=lambda line: None).summary
+        point = {"row": name, "seed": seed, "frames": at, "checkpoint": which}
+        for column, cell in CELLS.items():
+            m = summary.get(cell)
+            point[column] = f"{m.sr:.2f}" if m is not None and m.episodes else ""
+        point["val_sr"] = val.get(at, "")
+        print(f"{name} (seed {seed}) {which} at {at:,} frames: {point} ({time.perf_counter() - start:.0f} s)")
+        out.append(point)
+    return out
+
+
+def validation_sr(directory: Path) -> dict[int, str]:
+    """The run's validation SR by frames (metrics.csv's rows that validated)."""
+    with open(directory / "metrics.csv", newline="") as f:
+        return {int(r["frames"]): r["val_sr"] for r in csv.DictReader(f) if r.get("val_sr")}
+
+
+def best_frames(directory: Path) -> int:
+    """The frames of the run's best.pt (Table I's checkpoint rule)."""
+    import torch  # only here: the checkpoint's own record
+
+    ck = torch.load(directory / "best.pt", map_location="cpu", weights_only=True)
+    return int(ck["frames"])
+
+
+def figure(points: list[dict], paper: dict, path: Path, preset: str, overrides: dict) -> None:
+    """Seen/seen static SR and seen/unseen static SR of the snapshots over frames, one line per row
+    and seed; the paper's 40M numbers marked in the same colour (hollow squares at 40M)."""
+    series, marks = {}, {}
+    panels = (("seen_seen_static_sr", "seen/seen", "seen_seen/static"),
+              ("seen_unseen_static_sr", "seen/unseen", "seen_unseen/static"))  # fmt: skip
+    for column, label, cell in panels:
+        for p in points:
+            if not p["checkpoint"].startswith("frames-"):
+                continue
+            key = f"{p['row']} s{p['seed']}, {label} static"
+            xs, ys = series.setdefault(key, ([], []))
+            xs.append(p["frames"] / 1e6)
+            ys.append(float(p[column]) if p[column] != "" else math.nan)
+            if cell in paper.get(p["row"], {}):
+                marks[key] = [(40.0, paper[p["row"]][cell][1])]
+    title = f"Learning curves, {preset} preset" + (
+        " with " + ", ".join(f"{k}={v}" for k, v in overrides.items()) if overrides else ""
+    )
+    curves_figure(
+        series,
+        path,
+        title + "; squares: the paper at 40M",
+        "frames (millions)",
+        "SR (%), Table I's caps and rule",
+        x_include=(0.0, 40.0),
+        y_include=(0.0, 100.0),
+        marks=marks,
+    )
 
 
 if __name__ == "__main__":

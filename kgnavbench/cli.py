@@ -37,7 +37,7 @@ from pathlib import Path
 from . import arguments
 from .arguments import UsageError
 from .env import EnvError
-from .evaluate import CHECKPOINTS, SPLITS, EvalConfig, EvalError, evaluate, selected_checkpoint
+from .evaluate import SPLITS, EvalConfig, EvalError, checkpoint_name, evaluate, selected_checkpoint
 from .graph import TaskError, build_all, cache_dir
 from .kitchens import KITCHEN_NAMES, KitchenError, check_name, kitchen_summary, load_kitchen
 from .plugins import PluginError, load_plugin, parse_options, plugin_sources
@@ -521,10 +521,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--checkpoint",
-        choices=CHECKPOINTS,
+        type=checkpoint_name,
         default="best",
+        metavar="{best,last,frames-N}",
         help="which of the run's checkpoints: best.pt, the best validation SR (Table I's rule, default), "
-        "or last.pt, its latest weights (the final ones of a finished run)",
+        "last.pt, its latest weights (the final ones of a finished run), or frames-N, a snapshot kept "
+        "with keep_every",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="also record episodes with rerun")

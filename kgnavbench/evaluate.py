@@ -26,6 +26,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -63,6 +64,14 @@ SPLITS = ("table", "train", "val", "test")
 # a training run's checkpoints that `eval --run` can test
 CHECKPOINT_MEANING = {"best": "best validation SR", "last": "the run's latest weights"}
 CHECKPOINTS = tuple(CHECKPOINT_MEANING)
+SNAPSHOT = re.compile(r"frames-[0-9]{1,15}")  # a kept snapshot (train's keep_every): snapshots/frames-N.pt
+
+
+def checkpoint_name(name: str) -> str:
+    """best, last or frames-N (a snapshot); anything else is an EvalError."""
+    if name in CHECKPOINTS or SNAPSHOT.fullmatch(name):
+        return name
+    raise EvalError(f"unknown checkpoint {name!r}; choose one of {CHECKPOINTS} or frames-N (a kept snapshot)")
 
 
 class EvalError(ValueError):
@@ -117,8 +126,7 @@ class EvalConfig:
     device: str = "cpu"  # where a learned policy computes: "cpu" or "cuda" (kgnavbench/device.py)
 
     def __post_init__(self) -> None:
-        if self.checkpoint not in CHECKPOINTS:
-            raise EvalError(f"unknown checkpoint {self.checkpoint!r}; choose one of {CHECKPOINTS}")
+        checkpoint_name(self.checkpoint)
         if self.success_rule not in SUCCESS_RULES:
             raise EvalError(f"unknown success rule {self.success_rule!r}; choose one of {SUCCESS_RULES}")
         if self.split not in SPLITS:
@@ -303,8 +311,12 @@ def selected_checkpoint(run: str | Path, method: str, which: str = "best") -> Pa
         raise EvalError(f"--run {directory} is not a training run (no readable config.json)") from e
     if trained != method:
         raise EvalError(f"--run {directory} trained {trained!r}, not {method!r}")
-    path = directory / f"{which}.pt"  # `which` is one of CHECKPOINTS: EvalConfig checks it
+    which = checkpoint_name(which)
+    path = directory / (f"snapshots/{which}.pt" if SNAPSHOT.fullmatch(which) else f"{which}.pt")
     if not path.exists():
+        if SNAPSHOT.fullmatch(which):
+            kept = sorted(p.stem for p in (directory / "snapshots").glob("frames-*.pt"))
+            raise EvalError(f"--run {directory} kept no snapshot {which} (kept: {', '.join(kept) or 'none'})")
         when = "at the first validation" if which == "best" else "at the first checkpoint"
         raise EvalError(f"--run {directory} has no {path.name} yet (it is saved {when})")
     return path
@@ -656,8 +668,8 @@ def describe(config: EvalConfig) -> str:
         f"{config.method}{f' ({options})' if options else ''} — success: Stop {rule}; {stop}; "
         f"{config.episodes_per_target} episodes per target, split {config.split}"
         + (
-            f"; checkpoint {Path(config.run) / (config.checkpoint + '.pt')} "
-            f"({CHECKPOINT_MEANING[config.checkpoint]})"
+            f"; checkpoint {selected_checkpoint(config.run, config.method, config.checkpoint)} "
+            f"({CHECKPOINT_MEANING.get(config.checkpoint, 'a snapshot kept with keep_every')})"
             if config.run
             else ""
         )

@@ -392,10 +392,13 @@ def curves_figure(
     size=FIGURE_SIZE,
     x_include: tuple[float, ...] = (),
     y_include: tuple[float, ...] = (),
+    marks: dict[str, list[tuple[float, float]]] | None = None,
 ) -> Path:
     """One line per named series (xs, ys) on shared axes, with a legend; NaN values break a line. The
     axes cover the data and the values of x_include and y_include (0: curves over frames from the start,
-    a rate from zero)."""
+    a rate from zero). `marks`: per series name, points drawn as hollow squares in its colour (a
+    reference value, e.g. a paper's number)."""
+    marks = marks or {}
     clean = {}
     for name, (xs, ys) in series.items():
         xs, ys = list(map(float, xs)), list(map(float, ys))
@@ -406,8 +409,8 @@ def curves_figure(
     ys_all = [y for _, ys in clean.values() for y in ys if math.isfinite(y)]
     if not xs_all or not ys_all:
         raise FigureError("curves_figure needs at least one finite point")
-    xs_all += [float(x) for x in x_include]
-    ys_all += [float(y) for y in y_include]
+    xs_all += [float(x) for x in x_include] + [x for pts in marks.values() for x, _ in pts]
+    ys_all += [float(y) for y in y_include] + [y for pts in marks.values() for _, y in pts]
     img = _canvas(title, size)
     width, height = size
     # the x axis ends at the data (2,003,200 frames must not stretch it to a 2.5M tick)
@@ -435,6 +438,9 @@ def curves_figure(
                 cv2.polylines(img, [np.array(r, np.int32)], False, colour, 2, cv2.LINE_AA)
             elif r:
                 cv2.circle(img, r[0], 3, colour, -1, cv2.LINE_AA)
+        for x, y in marks.get(name, []):
+            cx, cy = ax.px(x, y)
+            cv2.rectangle(img, (cx - 5, cy - 5), (cx + 5, cy + 5), colour, 2, cv2.LINE_AA)
         entries.append((name, colour, "line"))
     ax.frame()
     # the legend inside the plot's top-left corner, one entry per line

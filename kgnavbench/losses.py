@@ -147,13 +147,15 @@ def expert_sequences(space: StateSpace, expert: str, walk: int, rng: np.random.G
     return pad(seqs, space.destination)
 
 
-def assign_targets(space: StateSpace, kitchen: np.ndarray) -> np.ndarray:
+def assign_targets(space: StateSpace, kitchen: np.ndarray, per_kitchen: int = 0) -> np.ndarray:
     """One training target per agent, as the paper's threads: the j-th agent of a kitchen trains its
-    kitchen's target j mod (targets of the kitchen). Every target needs an agent."""
+    kitchen's target j mod (targets of the kitchen; only its first `per_kitchen` when not 0). Every
+    target needs an agent."""
     kitchen = np.asarray(kitchen, np.int64)
     assigned = np.empty(len(kitchen), np.int64)
     for k in range(len(space.kitchens)):
         rows = space.kitchen_rows[space.kitchen_ptr[k] : space.kitchen_ptr[k + 1]]
+        rows = rows[:per_kitchen] if per_kitchen else rows
         agents = np.flatnonzero(kitchen == k)
         if len(agents) < len(rows):
             raise TrainError(

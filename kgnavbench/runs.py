@@ -77,6 +77,9 @@ class TrainOptions:
     # targets), as the paper's "140 threads, each thread learns for a different target"; false: every
     # episode draws a target of the agent's kitchen
     fixed_targets: bool = True
+    # with fixed_targets: train only the first N seen targets of each training kitchen (0: all of
+    # them). A small task that any sound learner masters quickly (tests/test_train.py)
+    targets_per_kitchen: int = 0
     n_steps: int = 20  # rollout length: n-step returns
     lr: float = 7e-4  # Adam
     gamma: float = 0.99
@@ -132,6 +135,9 @@ class TrainOptions:
     val_every: int = 1_000_000  # frames between validations (and at the end)
     val_kitchens: int = 5  # the first N validation kitchens
     val_episodes: int = 5  # the first N fixed episodes per target
+    # frames between kept snapshots of the weights (DIR/snapshots/frames-N.pt, N the frames at which
+    # it was taken; `eval --run DIR --checkpoint frames-N`): learning curves. 0: none
+    keep_every: int = 0
     threads: int = 2
     # end to end from pixels: the encoder CNN (from the committed weights) trains with the policy on
     # the 84x84 views instead of reading cached features (the GPU path; slow on a CPU)
@@ -160,10 +166,12 @@ class TrainOptions:
         for name, most in bounded.items():
             if getattr(self, name) > most:
                 raise TrainError(f"{name} must be at most {most}, not {getattr(self, name)}")
+        if self.targets_per_kitchen < 0 or (self.targets_per_kitchen and not self.fixed_targets):
+            raise TrainError("targets_per_kitchen must be 0 (all) or more, and needs fixed_targets=true")
         if not (0 < self.gamma <= 1 and self.lr > 0 and self.max_grad_norm > 0):
             raise TrainError("need 0 < gamma <= 1, lr > 0 and max_grad_norm > 0")
-        if min(self.tse_subtargets, self.stop_ends_from or 0) < 0:
-            raise TrainError("tse_subtargets and stop_ends_from must not be negative")
+        if min(self.tse_subtargets, self.stop_ends_from or 0, self.keep_every) < 0:
+            raise TrainError("tse_subtargets, stop_ends_from and keep_every must not be negative")
         for name in ("start_curriculum", "il_fraction"):
             if not 0 <= getattr(self, name) <= 1:
                 raise TrainError(f"{name} is a fraction of the run, 0 to 1, not {getattr(self, name)}")

@@ -12,7 +12,9 @@ top to bottom:
    episode and LSTM state, the co-visibility counts): a run killed at any moment resumes from
    `last.pt` exactly as if it had never stopped. Under torchrun each rank holds its share of the
    agents (kgnavbench/distributed.py).
-2. `learn`: the loop, `metrics.csv`, progress lines, `last.pt` / `best.pt` (best validation SR).
+2. `learn`: the loop, `metrics.csv`, progress lines, `last.pt`, `best.pt` (Table I's checkpoint rule:
+   the best validation SR, read with its standard error: the latest checkpoint whose validation SR is
+   within one standard error of the best so far) and, with keep_every, weight snapshots.
 A trained checkpoint becomes a plugin policy in the next stage, kgnavbench/policy.py.
 """
 
@@ -66,12 +68,19 @@ METRICS = (
     "episodes",
     "mean_reward",
     "mean_return",
+    # training episodes (curriculum starts, training's cap, sampled actions): the SR of each target
+    # over its episodes that ended since the last row, averaged over the targets, so that every target
+    # weighs alike, as in evaluation. Per episode (episode_success_rate) a target whose agents fail
+    # fast, Stopping early, ends many more episodes and drags it down (measured, FloorPlan1: 13.8% per
+    # episode, 35.7% per target, where the fixed episodes scored 34%)
     "success_rate",
+    "episode_success_rate",
     "rl_loss",
     "il_loss",
     "tse_loss",
     "val_sr",
     "val_spl",
+    "val_episodes",  # what the validation SR was measured on: its standard error is sqrt(p (1 - p) / n)
 )
 
 
@@ -138,12 +147,17 @@ class Trainer:
         # identical runs write identical checkpoints (and a plugin that uses it stays reproducible)
         random.seed(seed)
         self.frames = self.updates = 0
-        self.best_val_sr = -1.0
+        self.best_val_sr = -1.0  # the validation SR of the selected checkpoint (best.pt)
+        self.val_max = -1.0  # the best validation SR so far
         self.stats = self._empty_stats()
+        # per target row: episodes ended and successes since the last metrics row
+        self.target_stats = np.zeros((2, len(self.space.target_ids)), np.float64)
         self.val_space: StateSpace | None = None
         self.total_agents = options.agents_per_kitchen * len(self.kitchens)
         kitchen = np.repeat(np.arange(len(self.kitchens)), options.agents_per_kitchen)
-        assigned = assign_targets(self.space, kitchen) if options.fixed_targets else None
+        assigned = None
+        if options.fixed_targets:
+            assigned = assign_targets(self.space, kitchen, options.targets_per_kitchen)
         mine = np.arange(self.total_agents)[ranks.rank :: ranks.world]  # this rank's share of the agents
         if not len(mine):
             raise TrainError(f"{self.total_agents} agents cannot be shared by {ranks.world} ranks")
@@ -158,6 +172,7 @@ class Trainer:
             stop_ends=options.stop_ends_from == 0,
             max_steps=options.episode_cap,
             autoreset=False,
+            observe=False,
         )
         self.envs.reset(seed=seed, options={"reach": self.reach()})
         self.rng = self.envs.np_random
@@ -181,6 +196,10 @@ class Trainer:
             if self.il and not self.dagger
             else None
         )
+        if self.experts is not None and options.targets_per_kitchen:  # only the trained targets' experts
+            kept = np.unique(assigned)
+            ex = self.experts
+            self.experts = Sequences(ex.states[kept], ex.actions[kept], ex.mask[kept], ex.goal[kept])
 
     @staticmethod
     def _empty_stats() -> dict:
@@ -306,6 +325,8 @@ class Trainer:
                     ended = infos["final_info"]
                     self.stats["episodes"] += len(finished)
                     self.stats["successes"] += int(ended["success"][finished].sum())
+                    np.add.at(self.target_stats[0], nav.target[finished], 1.0)
+                    np.add.at(self.target_stats[1], nav.target[finished], ended["success"][finished])
                     self.stats["returns"] += float(ended["episode_return"][finished].sum())
                     if opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
                         windows += self.tse.finish(finished, self.tick)
@@ -472,9 +493,10 @@ class Trainer:
         return loss
 
     # -- validation ------------------------------------------------------------------------------
-    def validate(self) -> tuple[float, float, int]:
+    def validate(self) -> tuple[float, float, int, int]:
         """SR and SPL (percent) on the validation kitchens' fixed episodes (the first val_episodes per
-        target), cap 1000, under the success rule; its own seeded sampling, so training is untouched."""
+        target), cap 1000, under the success rule, the frames and the episodes it took; its own seeded
+        sampling, so training is untouched."""
         if self.val_space is None:
             names = load_task_file()["splits"]["val"][: self.opts.val_kitchens]
             self.val_space = build_space(
@@ -487,7 +509,8 @@ class Trainer:
         rows = [(r, s) for r, starts in enumerate(sp.fixed_starts) for s in starts[: self.opts.val_episodes]]
         targets = np.array([r for r, _ in rows], np.int64)
         starts = np.array([s for _, s in rows], np.int64)
-        return run_episodes(self.model, sp, targets, starts, VALIDATION_CAP, self.run.seed)
+        sr, spl, frames = run_episodes(self.model, sp, targets, starts, VALIDATION_CAP, self.run.seed)
+        return sr, spl, frames, len(rows)
 
     # -- checkpoints -----------------------------------------------------------------------------
     def state_dict(self, weights: bool = True) -> dict:
@@ -502,7 +525,9 @@ class Trainer:
             "updates": self.updates,
             "tick": self.tick,
             "best_val_sr": float(self.best_val_sr),
+            "val_max": float(self.val_max),
             "stats": {k: float(v) for k, v in self.stats.items()},
+            "target_stats": torch.from_numpy(self.target_stats.copy()),
             "model": self.model.net.state_dict() if weights else None,
             "optimizer": self.optimizer.state_dict() if weights else None,
             "covis": self.model.covis.state_dict(),
@@ -517,6 +542,23 @@ class Trainer:
             "history": None if self.history is None else torch.from_numpy(self.history.copy()),
             "tse": self.tse.state_dict(),
         }
+
+    def policy_state(self) -> dict:
+        """What a policy needs of the checkpoint (`policy.load_policy`): the weights, their config and
+        the knowledge graph's counts; no optimiser, generators or agents (a snapshot, not a resume point)."""
+        keys = (
+            "format",
+            "method",
+            "options",
+            "model_config",
+            "kitchens",
+            "seed",
+            "frames",
+            "updates",
+            "covis",
+        )
+        state = self.state_dict(weights=False)
+        return {**{k: state[k] for k in keys}, "model": self.model.net.state_dict()}
 
     RANK_STATE = ("rng", "agents", "hidden", "history", "tse")  # what differs between the ranks
 
@@ -543,10 +585,19 @@ class Trainer:
         self.tse.load_state_dict(ck["tse"])
         self.frames, self.updates, self.tick = ck["frames"], ck["updates"], ck["tick"]
         self.best_val_sr, self.stats = ck["best_val_sr"], dict(ck["stats"])
+        self.val_max = ck.get("val_max", self.best_val_sr)
+        if "target_stats" in ck:
+            self.target_stats = ck["target_stats"].numpy().copy()
 
 
 # ------------------------------------------------------------------------------------------------
 # 2. The loop: logs, checkpoints, resumption
+
+
+def standard_error(sr: float, episodes: int) -> float:
+    """The binomial standard error (points) of an SR in percent measured on `episodes` episodes."""
+    p = min(max(sr / 100.0, 0.0), 1.0)
+    return 100.0 * math.sqrt(p * (1.0 - p) / max(episodes, 1))
 
 
 def _read_metrics(path: Path, up_to: int) -> list[dict]:
@@ -601,41 +652,61 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
         f"({len(trainer.space.target_ids)} targets, "
         f"{agents} agents{on_ranks}) to {run.frames:,} frames; run {run.directory}"
     )
+    keep = options.keep_every
+    next_keep = (trainer.frames // keep + 1) * keep if keep else None
     t0, f0 = time.perf_counter(), trainer.frames
     while trainer.frames < run.frames:
         trainer.update()
+        if next_keep is not None and trainer.frames >= next_keep and ranks.main:
+            next_keep = (trainer.frames // keep + 1) * keep
+            snapshots = run.directory / "snapshots"
+            snapshots.mkdir(exist_ok=True)
+            save_checkpoint(snapshots / f"frames-{trainer.frames}.pt", trainer.policy_state())
         done = trainer.frames >= run.frames
         if trainer.frames < next_log and not done:
             continue
         next_log = (trainer.frames // every + 1) * every
         val_sr = val_spl = float("nan")
+        val_episodes = 0
         trainer.stats = distributed.sum_numbers(trainer.stats, ranks)  # every rank's episodes and losses
+        if ranks.world > 1:
+            trainer.target_stats = distributed.sum_tensor(
+                torch.from_numpy(trainer.target_stats), ranks
+            ).numpy()
         ranks_state = distributed.gather(trainer.rank_state(), ranks) if ranks.world > 1 else None
         if not ranks.main:  # rank 0 alone validates and writes
             trainer.stats = trainer._empty_stats()
+            trainer.target_stats[:] = 0.0
             continue
         if trainer.frames >= next_val or done:
             next_val = (trainer.frames // options.val_every + 1) * options.val_every
             tv = time.perf_counter()
-            val_sr, val_spl, val_frames = trainer.validate()
+            val_sr, val_spl, val_frames, val_episodes = trainer.validate()
+            trainer.val_max = max(trainer.val_max, val_sr)
+            val_se = standard_error(trainer.val_max, val_episodes)
+            selected = val_sr >= trainer.val_max - val_se
             progress(
-                f"  validation: SR {val_sr:.1f}%, SPL {val_spl:.1f}% ({val_frames:,} frames in "
-                f"{time.perf_counter() - tv:.1f} s)"
+                f"  validation: SR {val_sr:.1f}% (standard error {standard_error(val_sr, val_episodes):.1f}, "
+                f"{val_episodes} episodes), SPL {val_spl:.1f}% ({val_frames:,} frames in "
+                f"{time.perf_counter() - tv:.1f} s){'; now best.pt' if selected else ''}"
             )
-            if val_sr >= trainer.best_val_sr:  # on a tie the later, longer-trained checkpoint
+            if selected:
                 trainer.best_val_sr = val_sr
                 save_checkpoint(best, {**trainer.state_dict(), "val_sr": val_sr, "val_spl": val_spl})
         row = _metrics_row(trainer, time.perf_counter() - t0, trainer.frames - f0, val_sr, val_spl)
+        row["val_episodes"] = val_episodes or ""
         with open(metrics_path, "a") as f:
             csv.DictWriter(f, METRICS).writerow(row)
         trainer.stats = trainer._empty_stats()
+        trainer.target_stats[:] = 0.0
         save_checkpoint(last, {**trainer.state_dict(), **({"ranks": ranks_state} if ranks.world > 1 else {})})
         fps = (trainer.frames - f0) / max(time.perf_counter() - t0, 1e-9)
         eta = f"  ETA {duration_text((run.frames - trainer.frames) / fps)}" if not done and fps > 0 else ""
         progress(
             f"{trainer.frames:>12,} frames  {row['frames_per_s']:>8} frames/s{eta}  "
             f"reward/frame {row['mean_reward']}  "
-            f"SR(train episodes) {row['success_rate']}%  losses RL {row['rl_loss']} IL {row['il_loss']} "
+            f"SR(training episodes, mean over targets) {row['success_rate']}%  "
+            f"losses RL {row['rl_loss']} IL {row['il_loss']} "
             f"TSE {row['tse_loss']}"
         )
     seconds = time.perf_counter() - t0
@@ -654,6 +725,8 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
 
 def _metrics_row(trainer: Trainer, seconds: float, frames_done: int, val_sr: float, val_spl: float) -> dict:
     s = trainer.stats
+    episodes, successes = trainer.target_stats
+    per_target = successes[episodes > 0] / episodes[episodes > 0]
 
     def mean(total: str, count: str) -> str:
         return f"{s[total] / s[count]:.4f}" if s[count] else ""
@@ -666,7 +739,8 @@ def _metrics_row(trainer: Trainer, seconds: float, frames_done: int, val_sr: flo
         "episodes": int(s["episodes"]),
         "mean_reward": mean("reward", "frames"),
         "mean_return": mean("returns", "episodes"),
-        "success_rate": f"{100 * s['successes'] / s['episodes']:.2f}" if s["episodes"] else "",
+        "success_rate": f"{100 * per_target.mean():.2f}" if len(per_target) else "",
+        "episode_success_rate": f"{100 * s['successes'] / s['episodes']:.2f}" if s["episodes"] else "",
         "rl_loss": mean("rl", "losses_rl"),
         "il_loss": mean("il", "losses_il"),
         "tse_loss": mean("tse", "losses_tse"),

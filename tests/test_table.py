@@ -51,6 +51,7 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
     assert names[9:] == [
         "IL, DAgger with a shortest-path teacher",
         "+IL+TSE, TSE (targets)",
+        "+IL+TSE, object detections, no graph",
         "+KG+Attention, softmax over all nodes",
     ]
     assert {"smoke", "quick", "quick-all", "paper"} <= set(spec.presets)
@@ -80,7 +81,12 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
         Comparison("+KG", "+KG+Attention"),
         Comparison("+IL+TSE", "+IL+TSE, TSE (targets)"),
         Comparison("+KG+Attention", "+KG+Attention, softmax over all nodes"),
+        Comparison("+IL+TSE, object detections, no graph", "+KG"),  # the graph's own effect
     )
+    # the graph's control row gets the KG rows' detections and no graph; it runs in quick-all and paper
+    control = rows["+IL+TSE, object detections, no graph"]
+    assert control.method == "lstm_a3c" and control.options == {"il": "true", "tse": "true", "detections": "true"}
+    assert spec.presets["paper"].rows == ()
 
 
 GOOD = SPEC_FILE.read_text()
@@ -113,7 +119,7 @@ assert A_COMPARISON in GOOD
         ),
         (
             lambda t: t + "\n[[rows]]\nname = 'x'\nmethod = 'oracle'\npaper = { 'seen_seen/static' = 3 }\n",
-            "rows[12].paper.'seen_seen/static'",
+            "rows[13].paper.'seen_seen/static'",
         ),
         # the cell no target fills is not one of Table I's five
         (
@@ -121,7 +127,7 @@ assert A_COMPARISON in GOOD
                 t
                 + "\n[[rows]]\nname = 'x'\nmethod = 'oracle'\npaper = { 'seen_unseen/actionable' = [1, 2] }\n"
             ),
-            "rows[12].paper.'seen_unseen/actionable'",
+            "rows[13].paper.'seen_unseen/actionable'",
         ),
         # the random walk's numbers are in `paper` now: a note beside them is an unknown field
         (
@@ -141,7 +147,7 @@ assert A_COMPARISON in GOOD
             lambda t: t.replace('other = "+KG+Attention"\n', 'other = "+KG"\n'),
             "comparisons[5]: base and other",
         ),
-        (lambda t: t + "\n" + A_COMPARISON, "comparisons[8]: '+KG+Attention' against '+KG' is there twice"),
+        (lambda t: t + "\n" + A_COMPARISON, "comparisons[9]: '+KG+Attention' against '+KG' is there twice"),
         (
             lambda t: t.replace('other = "+KG+Attention"\n', 'other = "+KG+Attention"\nwhy = 1\n'),
             "comparisons[5] has unknown field(s) why",
