@@ -34,6 +34,8 @@ import re
 import time
 from pathlib import Path
 
+import torch
+
 from kgnavbench.arguments import frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
 from kgnavbench.evaluate import EvalConfig, evaluate
 from kgnavbench.figures import curves_figure
@@ -80,6 +82,7 @@ def main() -> None:
     parser.add_argument("--runs", type=Path, default=Path("runs"))
     parser.add_argument("--out", type=Path, default=None, help="OUT.csv and OUT.png (default: print only)")
     args = parser.parse_args()
+    torch.set_num_threads(1)  # one job per core, as the table's jobs (training: the preset's threads)
     spec = load_spec()
     if args.preset not in spec.presets:
         parser.error(f"unknown preset {args.preset!r}; the spec has {', '.join(spec.presets)}")
@@ -165,8 +168,6 @@ def validation_sr(directory: Path) -> dict[int, str]:
 
 def best_frames(directory: Path) -> int:
     """The frames of the run's best.pt (Table I's checkpoint rule)."""
-    import torch  # only here: the checkpoint's own record
-
     ck = torch.load(directory / "best.pt", map_location="cpu", weights_only=True)
     return int(ck["frames"])
 

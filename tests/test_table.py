@@ -85,7 +85,8 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
     )
     # the graph's control row gets the KG rows' detections and no graph; it runs in quick-all and paper
     control = rows["+IL+TSE, object detections, no graph"]
-    assert control.method == "lstm_a3c" and control.options == {"il": "true", "tse": "true", "detections": "true"}
+    assert control.method == "lstm_a3c"
+    assert control.options == {"il": "true", "tse": "true", "detections": "true"}
     assert spec.presets["paper"].rows == ()
 
 
