@@ -4,6 +4,7 @@ plugin."""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import signal
@@ -783,3 +784,50 @@ LEARNER = dict(
     val_kitchens=1,
     val_episodes=1,
 )
+
+
+def test_best_is_the_latest_checkpoint_within_one_standard_error_of_the_best(tmp_path, monkeypatch):
+    """Table I's checkpoint rule read with the validation's standard error: of validation SRs 10, 30,
+    29, 20, 28.5 on 100 episodes (the best, 30, has a standard error of 4.6 points), best.pt is the
+    fifth: the latest within one standard error of the best so far; 20 is not."""
+    srs = iter([10.0, 30.0, 29.0, 20.0, 28.5])
+    chosen = []
+
+    def validate(self):
+        sr = next(srs)
+        return sr, sr / 2, 1000, 100
+
+    monkeypatch.setattr(train.Trainer, "validate", validate)
+    original = train.save_checkpoint
+
+    def spy(path, state):
+        if Path(path).name == "best.pt":
+            chosen.append(state["val_sr"])
+        original(path, state)
+
+    monkeypatch.setattr(train, "save_checkpoint", spy)
+    options = tiny_options(n_steps=5, log_every=35, val_every=35)  # a validation every update
+    train.learn(tiny_run(tmp_path, frames=175), options, models.ModelConfig(lstm=32, hidden=32))
+    assert chosen == [10.0, 30.0, 29.0, 28.5]
+    assert runs.load_checkpoint(tmp_path / "best.pt")["val_sr"] == 28.5
+    with open(tmp_path / "metrics.csv", newline="") as f:
+        assert [r["val_episodes"] for r in csv.DictReader(f)] == ["100"] * 5
+    assert train.standard_error(30.0, 100) == pytest.approx(4.583, abs=1e-3)
+
+
+def test_snapshots_are_kept_and_evaluated(capsys, tmp_path, floorplan1_tasks):
+    """keep_every keeps the weights every N frames (snapshots/frames-N.pt, weights and config only);
+    `eval --checkpoint frames-N` tests one, and a snapshot that was not kept is one clear line."""
+    assert main(_train(tmp_path, "lstm_a3c", 400, ["keep_every=140"])[3:]) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    kept = sorted(p.name for p in (run_dir / "snapshots").glob("*.pt"))
+    assert kept == ["frames-140.pt", "frames-280.pt", "frames-420.pt"]
+    snapshot = runs.load_checkpoint(run_dir / "snapshots" / "frames-280.pt")
+    assert snapshot["frames"] == 280 and "optimizer" not in snapshot and "model" in snapshot
+    base = ["eval", "--method", "lstm_a3c", "--run", str(run_dir), "--kitchens", "FloorPlan1"]
+    base += ["--episodes", "1", "--runs", str(tmp_path), "--json"]
+    assert main([*base, "--checkpoint", "frames-280"]) == 0
+    assert json.loads(capsys.readouterr().out)["summary"]
+    assert main([*base, "--checkpoint", "frames-7"]) == 2
+    err = capsys.readouterr().err
+    assert "kept no snapshot frames-7" in err and "frames-140" in err and err.count("\n") == 1
