@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import math
+import os
 import re
 import sys
 import time
@@ -40,6 +42,7 @@ from .files import (
     checksum_matches,
     checksum_path,
     duration_text,
+    first_line,
     git_revision,
     write_with_checksum,
 )
@@ -188,12 +191,16 @@ def kitchen_episodes(tasks: KitchenTasks, per_target: int) -> list[tuple[str, li
     return out
 
 
-def evaluate_kitchen(plugin, plugin_config, config: EvalConfig, kitchen: str) -> list[EpisodeResult]:
+def evaluate_kitchen(
+    plugin, plugin_config, config: EvalConfig, kitchen: str, checkpoint: Path | None = None
+) -> list[EpisodeResult]:
     """Every fixed episode of one kitchen at once: one env reset, an agent per episode (each with its
-    column's cap), so a batched policy sees them all in one act() call."""
+    column's cap), so a batched policy sees them all in one act() call. `checkpoint`: the weights a
+    learned policy loads (the evaluation's frozen copy)."""
     tasks = load_tasks(kitchen)
     seed = config.seed * 1000 + KITCHEN_NAMES.index(kitchen)  # the same per kitchen, resumable
-    policy = plugin.make_policy(plugin_config, policy_spec(config, seed, tasks.graph.views.shape[1]))
+    spec = policy_spec(config, seed, tasks.graph.views.shape[1], checkpoint)
+    policy = plugin.make_policy(plugin_config, spec)
     columns, episodes = [], []
     for column, target_episodes in kitchen_episodes(tasks, config.episodes_per_target):
         columns += [column] * len(target_episodes)
@@ -292,12 +299,75 @@ def without_privileged(infos: dict) -> dict:
     return shown
 
 
-def policy_spec(config: EvalConfig, seed: int, view_size: int) -> PolicySpec:
-    """What the policy is told before it starts: for a trained method, its selected checkpoint."""
-    checkpoint = (
-        str(selected_checkpoint(config.run, config.method, config.checkpoint)) if config.run else None
-    )
-    return PolicySpec.default(seed, view_size, checkpoint, config.device)
+def policy_spec(config: EvalConfig, seed: int, view_size: int, checkpoint: Path | None = None) -> PolicySpec:
+    """What the policy is told before it starts: for a trained method, its checkpoint (`checkpoint`:
+    the evaluation's frozen copy of the weights; else the run's selected one)."""
+    if checkpoint is None and config.run:
+        checkpoint = selected_checkpoint(config.run, config.method, config.checkpoint)
+    return PolicySpec.default(seed, view_size, None if checkpoint is None else str(checkpoint), config.device)
+
+
+@dataclass
+class Weights:
+    """A run's selected checkpoint as one evaluation tests it: read once, its bytes and their sha256."""
+
+    source: Path
+    data: bytes
+    sha256: str
+
+
+def read_weights(config: EvalConfig) -> Weights:
+    """The selected checkpoint of `config.run`, read once: every kitchen of the evaluation gets these
+    bytes (a trainer that replaces best.pt meanwhile changes nothing), and its sha256 is the
+    evaluation's identity. The checkpoint's own record must name the method (config.json may be
+    relabelled; the weights are what they are)."""
+    source = selected_checkpoint(config.run, config.method, config.checkpoint)
+    try:
+        data = source.read_bytes()
+    except OSError as e:
+        raise EvalError(f"cannot read {source}: {e.strerror or e}") from e
+    import torch  # only where a trained method is evaluated (the command line starts without it)
+
+    try:
+        trained = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True).get("method")
+    except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, one line naming it
+        raise EvalError(f"checkpoint {source} is corrupt ({type(e).__name__}: {first_line(e)})") from e
+    if checksum_matches(source, data) is False:
+        raise EvalError(f"checkpoint {source} does not match its checksum: it changed after it was written")
+    if trained != config.method:
+        raise EvalError(
+            f"{source} holds weights trained by {trained!r} (its own record), not {config.method!r}"
+        )
+    return Weights(source, data, hashlib.sha256(data).hexdigest())
+
+
+def freeze_weights(directory: Path, weights: Weights) -> Path:
+    """The evaluation's own copy of the weights it tests, `weights.pt` in its directory, with its
+    sha256 beside it: the record of which weights gave these results, and what every kitchen loads. A
+    hard link where the file system allows it and the source still holds those bytes (the trainer
+    replaces checkpoints by renaming, so the link keeps them), else a copy of the bytes read."""
+    path = directory / "weights.pt"
+    if path.exists() and _sha256_file(path) == weights.sha256:
+        return path
+    link = path.with_name(".weights.pt.link")
+    try:
+        link.unlink(missing_ok=True)
+        os.link(weights.source, link)
+        if _sha256_file(link) != weights.sha256:
+            raise OSError("the checkpoint changed since it was read")
+        os.replace(link, path)
+        atomic_write(checksum_path(path), f"{weights.sha256}  {path.name}\n")
+    except OSError:
+        link.unlink(missing_ok=True)
+        try:
+            write_with_checksum(path, weights.data)
+        except OSError as e:
+            raise EvalError(f"cannot write {path}: {e.strerror or e}; choose another --runs folder") from e
+    return path
+
+
+def _sha256_file(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def selected_checkpoint(run: str | Path, method: str, which: str = "best") -> Path:
@@ -501,9 +571,11 @@ def expected_episodes(kitchen: str, per_target: int) -> list[tuple[str, int]]:
     return [(t["object"], s) for t in tasks["targets"] for s in t["starts"][:per_target]]
 
 
-def run_identity(config: EvalConfig, plugin: Plugin, plugin_config) -> dict:
-    """Everything that decides an evaluation's numbers; its hash names the run directory."""
-    checkpoint = selected_checkpoint(config.run, config.method, config.checkpoint) if config.run else None
+def run_identity(config: EvalConfig, plugin: Plugin, plugin_config, weights: Weights | None = None) -> dict:
+    """Everything that decides an evaluation's numbers; its hash names the run directory. `weights`:
+    the tested checkpoint as read once (`read_weights`; read here when not given)."""
+    if weights is None and config.run:
+        weights = read_weights(config)
     return {
         # as it reads back (tuples are lists); where the run lies and which of its checkpoints is
         # tested are not part of it, the tested weights are
@@ -511,7 +583,7 @@ def run_identity(config: EvalConfig, plugin: Plugin, plugin_config) -> dict:
             json.dumps({k: v for k, v in asdict(config).items() if k not in ("run", "checkpoint")})
         ),
         # the tested weights themselves: a retrained run is another evaluation
-        "checkpoint_sha256": hashlib.sha256(checkpoint.read_bytes()).hexdigest() if checkpoint else None,
+        "checkpoint_sha256": weights.sha256 if weights else None,
         "plugin_config": json.loads(json.dumps(dataclasses.asdict(plugin_config), default=str)),
         "plugin_source_sha256": hashlib.sha256(plugin.source_bytes()).hexdigest(),
         "protocol": {
@@ -600,9 +672,11 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
     if config.run:
         check_fixed_options(config, plugin_config)
     kitchens = config.kitchen_list()
-    identity = run_identity(config, plugin, plugin_config)
+    weights = read_weights(config) if config.run else None
+    identity = run_identity(config, plugin, plugin_config, weights)
     directory = Path(runs_dir) / "eval" / config.run_name(identity)
     open_run(directory, identity, plugin)
+    frozen = freeze_weights(directory, weights) if weights else None
 
     run = EvalRun(config, directory)
     start = time.perf_counter()
@@ -630,7 +704,7 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
                 run.resumed.append(kitchen)
         if results is None:
             t0 = time.perf_counter()
-            results = evaluate_kitchen(plugin, plugin_config, config, kitchen)
+            results = evaluate_kitchen(plugin, plugin_config, config, kitchen, frozen)
             _write(path, "".join(json.dumps(asdict(r)) + "\n" for r in results), checksum=True)
             steps = sum(r.episode_length for r in results)
             run.steps += steps

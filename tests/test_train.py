@@ -831,3 +831,50 @@ def test_snapshots_are_kept_and_evaluated(capsys, tmp_path, floorplan1_tasks):
     assert main([*base, "--checkpoint", "frames-7"]) == 2
     err = capsys.readouterr().err
     assert "kept no snapshot frames-7" in err and "frames-140" in err and err.count("\n") == 1
+
+
+def test_an_evaluation_reads_its_weights_once(capsys, tmp_path, floorplan1_tasks, monkeypatch):
+    """best.pt replaced in the middle of an evaluation (as a running trainer replaces it) changes
+    nothing: every kitchen loads the evaluation's frozen copy (weights.pt, the bytes read at its
+    start, whose sha256 is in its identity). A config.json relabelled with another method is refused
+    by the checkpoint's own record."""
+    import hashlib
+
+    from kgnavbench import evaluate
+
+    assert main(_train(tmp_path, "lstm_a3c", 400)[3:]) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    original = hashlib.sha256((run_dir / "best.pt").read_bytes()).hexdigest()
+    loaded = []
+    real = evaluate.evaluate_kitchen
+
+    def replacing(plugin, plugin_config, config, kitchen, checkpoint=None):
+        loaded.append(hashlib.sha256(Path(checkpoint).read_bytes()).hexdigest())
+        results = real(plugin, plugin_config, config, kitchen, checkpoint)
+        ck = runs.load_checkpoint(run_dir / "best.pt")  # another model takes best.pt's place
+        for tensor in ck["model"].values():
+            if tensor.is_floating_point():
+                tensor.add_(1.0)
+        runs.save_checkpoint(run_dir / "best.pt", ck)
+        return results
+
+    monkeypatch.setattr(evaluate, "evaluate_kitchen", replacing)
+    config = evaluate.EvalConfig(
+        method="lstm_a3c",
+        split="train",
+        kitchens=("FloorPlan1", "FloorPlan2"),
+        episodes_per_target=1,
+        run=str(run_dir),
+    )
+    run = evaluate.evaluate(config, tmp_path / "runs", progress=lambda line: None)
+    assert loaded == [original, original]
+    identity = json.loads((run.directory / "config.json").read_text())["identity"]
+    assert identity["checkpoint_sha256"] == original
+    assert hashlib.sha256((run.directory / "weights.pt").read_bytes()).hexdigest() == original
+    # the run's config.json says kg_attention; its weights say lstm_a3c
+    saved = json.loads((run_dir / "config.json").read_text())
+    (run_dir / "config.json").write_text(json.dumps({**saved, "method": "kg_attention"}))
+    base = ["eval", "--method", "kg_attention", "--run", str(run_dir), "--kitchens", "FloorPlan1"]
+    assert main([*base, "--episodes", "1", "--runs", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err
+    assert "trained by 'lstm_a3c' (its own record)" in err and err.count("\n") == 1
