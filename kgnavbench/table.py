@@ -29,6 +29,7 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from shlex import quote
 from typing import NamedTuple
 
 import torch
@@ -38,6 +39,7 @@ from .evaluate import (
     COLUMN_TITLES,
     EpisodeResult,
     EvalConfig,
+    EvalRun,
     evaluate,
     git_revision,
     spl_term,
@@ -158,18 +160,21 @@ def run_row(
             progress=progress,
             device=device,
         )
+    kitchens = eval_kitchens(preset, row)
     config = EvalConfig(
         method=row.method,
         options=tuple(sorted(options.items())),
         success_rule=spec.protocol.success_rule,
         stop_ends=spec.protocol.stop_ends,
         split="table",
-        kitchens=eval_kitchens(preset, row),
+        kitchens=kitchens,
         episodes_per_target=preset.episodes,
         seed=seed,
         run=str(run_dir) if run_dir else "",
         device=device,
     )
+    if not kitchens:  # every evaluation kitchen is an unseen one, where this row has no cells: "–"
+        return run_dir, EvalRun(config, Path(runs_dir) / "eval")  # (no kitchens would mean all of them)
     return run_dir, evaluate(config, runs_dir, progress=progress)
 
 
@@ -268,9 +273,19 @@ def job_commands(spec: TableSpec, preset_name: str, runs_dir: Path | str) -> lis
     its row and seed into the shared runs folder; `kgnavbench table` after them only assembles."""
     preset = _preset(spec, preset_name)
     jobs = table_jobs(spec, preset)
-    spec_option = "" if Path(spec.path).resolve() == SPEC_FILE.resolve() else f" --spec {spec.path}"
-    base = f"kgnavbench table --preset {preset.name}{spec_option} --runs {runs_dir}"
-    return [f"{base} --job {n + 1}  # {row.name} (seed {seed})" for n, (row, seed) in enumerate(jobs)]
+    spec_option = (
+        "" if Path(spec.path).resolve() == SPEC_FILE.resolve() else f" --spec {quote(str(spec.path))}"
+    )
+    base = f"kgnavbench table --preset {quote(preset.name)}{spec_option} --runs {quote(str(runs_dir))}"
+    # every argument quoted for the shell; the row's name only in a comment, on one line
+    return [
+        f"{base} --job {n + 1}  # {one_line(row.name)} (seed {seed})" for n, (row, seed) in enumerate(jobs)
+    ]
+
+
+def one_line(text: str) -> str:
+    """A name as one line of printable text (control characters, newlines included, become spaces)."""
+    return "".join(c if c.isprintable() else " " for c in text)
 
 
 def run_job(
@@ -605,10 +620,16 @@ def verdict_counts(result: TableResult) -> str:
     return "; ".join(parts)
 
 
+def _md_cell(text: str) -> str:
+    """A markdown table cell: one line, its pipes escaped (a row named 'a | b' stays one cell)."""
+    return one_line(text).replace("\\", "\\\\").replace("|", "\\|")
+
+
 def _markdown_table(head: list[str], rows: list[list[str]], numeric: set[int]) -> list[str]:
-    """A markdown table; the columns numbered in `numeric` right-aligned."""
+    """A markdown table; the columns numbered in `numeric` right-aligned; every cell escaped."""
     align = "|" + "".join("---:|" if i in numeric else "---|" for i in range(len(head)))
-    return ["| " + " | ".join(head) + " |", align] + ["| " + " | ".join(row) + " |" for row in rows]
+    lines = ["| " + " | ".join(map(_md_cell, head)) + " |", align]
+    return lines + ["| " + " | ".join(map(_md_cell, row)) + " |" for row in rows]
 
 
 def to_markdown(result: TableResult) -> str:
@@ -678,9 +699,23 @@ def to_ablation_csv(result: TableResult) -> str:
     return out.getvalue()
 
 
+TEX_SPECIAL = {
+    "\\": r"\textbackslash{}",
+    "&": r"\&",
+    "%": r"\%",
+    "_": r"\_",
+    "#": r"\#",
+    "$": r"\$",
+    "{": r"\{",
+    "}": r"\}",
+    "~": r"\textasciitilde{}",
+    "^": r"\textasciicircum{}",
+}
+
+
 def _tex_escape(text: str) -> str:
-    for a, b in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#")):
-        text = text.replace(a, b)
+    """A LaTeX table cell: LaTeX's special characters escaped in one pass, on one line."""
+    text = "".join(TEX_SPECIAL.get(ch, ch) for ch in one_line(text))
     if not any(ch.isalpha() for ch in text):
         text = text.replace("-", "$-$")  # a number's minus sign, not a hyphen
     return text.replace("−", "$-$").replace("–", "--")

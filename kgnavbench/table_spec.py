@@ -9,6 +9,7 @@ TableError naming the file and the field. `CELLS` names Table I's five cells.
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +22,7 @@ from .tasks import EPISODES_PER_TARGET
 
 SPEC_FILE = Path(__file__).resolve().parent.parent / "tables" / "table1.toml"
 CHECKPOINT_RULES = ("best_val_sr",)
+PRESET_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,39}")
 # Table I's five cells (column, kind), in the paper's order. The sixth pair of evaluate's columns and
 # kinds, actionable targets in seen kitchens that are unseen, never has an episode: every actionable
 # target of a training kitchen is a seen one.
@@ -179,6 +181,11 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
     presets = {}
     for name, t in _field(str(path), raw, "presets", dict).items():
         where = f"{path}: presets.{name}"
+        if not PRESET_NAME.fullmatch(name):  # it names files (tables/table1-NAME.md) and claims
+            raise TableError(
+                f"{path}: preset name {name!r} must be letters, digits, '-' and '_' (at most 40), "
+                "starting with a letter or digit"
+            )
         if not isinstance(t, dict):
             raise TableError(f"{where} must be a table")
         _unknown(

@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import os
 import re
+import shlex
 import signal
 import subprocess
 import sys
@@ -576,3 +577,52 @@ def test_table_errors_are_one_line(capsys, tmp_path):
     assert "rows[3].method" in err and err.count("\n") == 1
     assert main(["table", "--preset", "huge", "--runs", str(tmp_path)]) == 2
     assert "unknown preset 'huge'" in capsys.readouterr().err
+
+
+def test_names_in_printed_tables_and_commands_are_escaped(tmp_path, capsys):
+    """What the table prints for others to read or run is safe: a row name with '|', a newline or
+    TeX's specials stays one markdown cell and one LaTeX cell; `--jobs` quotes every argument for the
+    shell and keeps a row's name in its one-line comment; a preset name cannot leave --out."""
+    result = fake_result()
+    odd = "+KG | {x}$_%^~ \\ & #\nnext"
+    result.rows[1] = dataclasses.replace(
+        result.rows[1], row=dataclasses.replace(result.rows[1].row, name=odd)
+    )
+    md = to_markdown(result)
+    line = next(line for line in md.splitlines() if line.startswith("| +KG \\| "))
+    assert len(_cells_of(line.replace("\\|", "/"))) == len(_cells_of(md.splitlines()[2]))
+    tex = to_latex(result)
+    assert r"+KG | \{x\}\$\_\%\textasciicircum{}\textasciitilde{} \textbackslash{} \& \# next" in tex
+    # --jobs: a runs folder with a space and a spec path with a quote come back as one argument each
+    spec_path = tmp_path / "it's a spec.toml"
+    spec_path.write_text(GOOD)
+    runs_dir = tmp_path / "my runs; touch X"
+    assert (
+        main(["table", "--spec", str(spec_path), "--preset", "smoke", "--runs", str(runs_dir), "--jobs"]) == 0
+    )
+
+    for line in capsys.readouterr().out.splitlines():
+        printed, _, comment = line.partition("  # ")
+        words = shlex.split(printed)
+        assert words[words.index("--runs") + 1] == str(runs_dir)
+        assert words[words.index("--spec") + 1] == str(spec_path)
+        assert "\n" not in comment
+    assert not (tmp_path / "X").exists() and not runs_dir.exists()
+    # a preset name that would leave the folder is refused where the spec is read
+    bad = GOOD.replace("[presets.smoke]", '[presets."sub/../../escaped"]', 1)
+    with pytest.raises(TableError, match="preset name 'sub/../../escaped' must be letters"):
+        parse_spec(bad, "tables/bad.toml")
+
+
+def test_a_row_without_unseen_kitchens_gets_no_cells_where_every_kitchen_is_unseen(tmp_path):
+    """FF A3C has no row for unseen kitchens: in a preset whose evaluation kitchens are all unseen it
+    is evaluated nowhere (no kitchens used to mean the whole split) and its cells stay empty."""
+    from kgnavbench.table import eval_kitchens, run_row
+
+    spec = load_spec()
+    rows = {r.name: r for r in spec.rows}
+    preset = dataclasses.replace(spec.presets["smoke"], eval_kitchens=("FloorPlan27",))
+    assert eval_kitchens(preset, rows["FF A3C"]) == ()
+    row = dataclasses.replace(rows["FF A3C"], method="random_walk", options={})  # nothing to train
+    _, run = run_row(spec, preset, row, 0, tmp_path, progress=lambda line: None)
+    assert run.results == [] and not (tmp_path / "eval").exists()
