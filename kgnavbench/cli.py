@@ -257,6 +257,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
+    from .distributed import DistributedError
     from .models import ModelError
     from .runs import TrainError, train_method
 
@@ -278,7 +279,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             progress=lambda line: print(line, flush=True),
             device=args.device,
         )
-    except (TrainError, ModelError) as e:
+    except (TrainError, ModelError, DistributedError) as e:
         raise UsageError(str(e)) from e
     if args.record is not None:
         from .record import RecordError, record_training
@@ -349,6 +350,7 @@ def cmd_encoder(args: argparse.Namespace) -> int:
 
 def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
+    from .distributed import DistributedError
     from .runs import TrainError
     from .table import job_commands, run_job, run_table, run_worker, to_markdown, write_table
     from .table_spec import SPEC_FILE, TableError, load_spec
@@ -376,7 +378,7 @@ def cmd_table(args: argparse.Namespace) -> int:
             return 0
         result = run_table(spec, args.preset, args.runs, progress=say, workers=args.workers, device=device)
         paths = write_table(result, args.out or spec.path.parent)
-    except (TableError, TrainError) as e:
+    except (TableError, TrainError, DistributedError) as e:
         raise UsageError(str(e)) from e
     print()
     print(to_markdown(result).rstrip())

@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import os
 from dataclasses import dataclass
+from datetime import timedelta
 
 import torch
 import torch.distributed as dist
@@ -41,17 +42,57 @@ class Ranks:
 SINGLE = Ranks()  # one process
 
 
+RANK_TIMEOUT = "KGNAVBENCH_RANK_TIMEOUT"  # seconds the ranks wait for each other to join (default 300)
+
+
+class DistributedError(ValueError):
+    """RANK / WORLD_SIZE that torchrun did not set, or set wrong, or ranks that never joined: one line."""
+
+
 def from_env() -> Ranks:
-    """This process's rank and the world size as torchrun sets them (1 process without torchrun)."""
-    return Ranks(int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1")))
+    """This process's rank and the world size as torchrun sets them (1 process without torchrun). A
+    stray or malformed RANK / WORLD_SIZE is a DistributedError, not a rank that silently does nothing."""
+    rank, world = os.environ.get("RANK"), os.environ.get("WORLD_SIZE")
+    if rank is None and world is None:
+        return SINGLE
+    try:
+        r, w = int(rank if rank is not None else "0"), int(world if world is not None else "1")
+    except ValueError:
+        raise DistributedError(
+            f"RANK={rank!r} and WORLD_SIZE={world!r} must be whole numbers (torchrun sets them; "
+            "unset both for one process)"
+        ) from None
+    if not (w >= 1 and 0 <= r < w):
+        raise DistributedError(
+            f"RANK={r} is no rank of WORLD_SIZE={w} (0 <= RANK < WORLD_SIZE); unset both for one process"
+        )
+    if w > 1 and not os.environ.get("MASTER_ADDR"):
+        raise DistributedError(
+            f"WORLD_SIZE={w} without MASTER_ADDR: start the ranks with torchrun "
+            "(or unset RANK and WORLD_SIZE)"
+        )
+    return Ranks(r, w)
 
 
 def start(device: torch.device = torch.device("cpu")) -> Ranks:  # noqa: B008 - an immutable default
     """Join torchrun's process group (once): gloo on the CPU, NCCL for CUDA tensors; a single process
-    joins nothing."""
+    joins nothing. Ranks that do not all join within KGNAVBENCH_RANK_TIMEOUT seconds (300) are a
+    DistributedError, not torch's silent 30 minutes."""
     ranks = from_env()
     if ranks.world > 1 and not dist.is_initialized():
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        try:
+            seconds = float(os.environ.get(RANK_TIMEOUT, "300"))
+        except ValueError:
+            raise DistributedError(f"{RANK_TIMEOUT} must be a number of seconds") from None
+        try:
+            dist.init_process_group(
+                "nccl" if device.type == "cuda" else "gloo", timeout=timedelta(seconds=seconds)
+            )
+        except (RuntimeError, dist.DistError) as e:
+            raise DistributedError(
+                f"rank {ranks.rank} of {ranks.world}: the ranks did not all join within {seconds:g} s "
+                f"({type(e).__name__}); is every rank started (torchrun --nproc_per_node={ranks.world})?"
+            ) from e
     return ranks
 
 

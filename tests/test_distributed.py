@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import torch
 
 from kgnavbench import runs
@@ -115,3 +116,45 @@ def test_two_gloo_ranks_stay_identical_and_resume_after_kill_9(tmp_path, hermeti
     for rank in range(2):
         assert a["ranks"][rank]["rng"]["numpy"] == b["ranks"][rank]["rng"]["numpy"]
         assert torch.equal(a["ranks"][rank]["agents"]["state"], b["ranks"][rank]["agents"]["state"])
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize(
+    ("env", "message"),
+    [
+        ({"RANK": "1", "WORLD_SIZE": "1"}, "RANK=1 is no rank of WORLD_SIZE=1"),
+        ({"RANK": "abc"}, "must be whole numbers"),
+        ({"RANK": "0", "WORLD_SIZE": "2"}, "WORLD_SIZE=2 without MASTER_ADDR"),
+        (
+            {"RANK": "0", "WORLD_SIZE": "2", "MASTER_ADDR": "127.0.0.1", "KGNAVBENCH_RANK_TIMEOUT": "2"},
+            "the ranks did not all join within 2 s",
+        ),
+    ],
+    ids=["rank-outside-world", "not-a-number", "no-torchrun", "a-rank-missing"],
+)
+def test_stray_or_broken_rank_variables_are_one_line(capsys, tmp_path, monkeypatch, env, message):
+    """RANK / WORLD_SIZE outside torchrun, or ranks that never all join: one line and exit 2, never a
+    silent exit 0 that trains nothing (RANK=1 WORLD_SIZE=1) or torch's 30-minute wait."""
+    from kgnavbench.cli import main
+
+    for key in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT", "LOCAL_RANK"):
+        monkeypatch.delenv(key, raising=False)
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    if "MASTER_ADDR" in env:
+        monkeypatch.setenv("MASTER_PORT", str(_free_port()))
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    command = ["train", "--method", "lstm_a3c", "--frames", "70", "--kitchens", "FloorPlan1"]
+    start = time.perf_counter()
+    assert main([*command, "--runs", str(tmp_path), *sets]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+    assert time.perf_counter() - start < 60
+    assert not list(tmp_path.glob("train/*/last.pt"))
