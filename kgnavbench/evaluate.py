@@ -688,6 +688,8 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
         if path.exists():
             data = path.read_bytes()
             try:
+                if checksum_matches(path, data) is None:  # nothing proves it is what was written
+                    raise ValueError(f"its checksum {checksum_path(path).name} is missing")
                 results = parse_results(data.decode(), expected, kitchen)
             except (OSError, UnicodeDecodeError, json.JSONDecodeError, ValueError, TypeError) as e:
                 aside = path.with_name(f"{path.name}.corrupt-{int(time.time())}")
@@ -695,6 +697,7 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
                 print(
                     f"kgnavbench: {path} is damaged ({e}); moved to {aside.name}, re-running", file=sys.stderr
                 )
+                results = None
             else:  # well formed: counted only if it is what was written
                 if checksum_matches(path, data) is False:
                     raise EvalError(

@@ -264,3 +264,19 @@ def test_a_runs_folder_that_cannot_be_written_is_an_error_and_writes_nothing(tmp
     with pytest.raises(EvalError, match="cannot write .*config.json"):
         evaluate(config, blocker / "runs", progress=lambda line: None)
     assert blocker.read_text() == "not a folder"
+
+
+def test_a_results_file_without_its_checksum_is_rerun_never_trusted(tmp_path, floorplan1_tasks, capsys):
+    """A results file whose sha256 was deleted proves nothing: even well formed (here: every episode
+    edited into a success), it is set aside and the kitchen re-run, never resumed."""
+    config = EvalConfig("random_walk", kitchens=("FloorPlan1",), episodes_per_target=1)
+    run = evaluate(config, tmp_path, progress=lambda line: None)
+    path = run.directory / "episodes" / "FloorPlan1.jsonl"
+    good = path.read_text()
+    edited = good.replace('"success": false', '"success": true')
+    assert edited != good
+    path.write_text(edited)
+    (path.parent / "FloorPlan1.jsonl.sha256").unlink()
+    again = evaluate(config, tmp_path, progress=lambda line: None)
+    assert again.resumed == [] and again.results == run.results and path.read_text() == good
+    assert "checksum FloorPlan1.jsonl.sha256 is missing" in capsys.readouterr().err
