@@ -46,13 +46,29 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def stale(record: dict | None) -> bool:
-    """A claim of this host whose process is gone, and not done. Unreadable: not stale (it is being
-    written by the process that just created it)."""
-    if record is None or record.get("done"):
+WRITING_GRACE = 10.0  # seconds a claim file may stay unreadable while its creator writes it
+
+
+def stale(record: dict | None, path: Path | None = None) -> bool:
+    """A claim that holds nothing any more: of this host with its process gone (and not done), or
+    malformed (no host name, or on this host no whole-number pid), or, given its `path`, unreadable
+    for longer than a creator takes to write it (an empty file left by a crash). An unreadable claim
+    younger than that is being written: not stale."""
+    if record is None:
+        if path is None:
+            return False
+        try:
+            return time.time() - os.stat(path).st_mtime > WRITING_GRACE
+        except OSError:
+            return False
+    if record.get("done") is True:
         return False
-    pid = record.get("pid")
-    return record.get("host") == socket.gethostname() and isinstance(pid, int) and not _alive(pid)
+    host, pid = record.get("host"), record.get("pid")
+    if not isinstance(host, str):
+        return True
+    if host != socket.gethostname():
+        return False  # another machine's pid means nothing here
+    return not isinstance(pid, int) or isinstance(pid, bool) or pid <= 0 or not _alive(pid)
 
 
 def claim(path: Path | str) -> bool:
@@ -64,7 +80,7 @@ def claim(path: Path | str) -> bool:
         try:
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
-            if not stale(read(path)):
+            if not stale(read(path), path):
                 return False
             aside = path.with_name(f"{path.name}.stale-{os.getpid()}")
             try:  # only one of the processes that found it stale moves it aside
@@ -96,10 +112,23 @@ def release(path: Path | str) -> None:
 
 
 def describe(record: dict | None) -> str:
+    """Who holds a claim, from its record, whatever the record's fields hold."""
     if record is None:
         return "another process (its claim is being written)"
-    since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(record.get("since", 0)))
-    return f"pid {record.get('pid')} on {record.get('host')} since {since}"
+    since = record.get("since")
+    try:
+        if not isinstance(since, (int, float)) or isinstance(since, bool):
+            raise TypeError(since)
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(since))
+    except (TypeError, ValueError, OverflowError, OSError):
+        when = f"an unknown time ({_short(since, 40)})"
+    return f"pid {_short(record.get('pid'))} on {_short(record.get('host'))} since {when}"
+
+
+def _short(value, width: int = 60) -> str:
+    """A record's field for a message: one short line whatever it holds."""
+    text = value if isinstance(value, str) else repr(value)
+    return "".join(c if c.isprintable() else "?" for c in text)[:width]
 
 
 @contextmanager

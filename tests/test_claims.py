@@ -70,3 +70,23 @@ def test_done_marks_the_claim_and_held_releases_it(tmp_path):
     assert claims.claim(path)
     claims.done(path)
     assert claims.read(path)["done"] is True and not claims.claim(path)
+
+
+def test_malformed_and_abandoned_claims_are_taken_over_or_named_without_a_traceback(tmp_path):
+    """A claim file left empty by a crash (older than a creator takes to write one), or with fields of
+    the wrong kind, does not block forever; an odd start time is named, not a traceback."""
+    path = tmp_path / "trainer.claim"
+    path.write_text("")
+    old = time.time() - 2 * claims.WRITING_GRACE
+    os.utime(path, (old, old))
+    assert claims.claim(path)  # empty and old: abandoned
+    claims.release(path)
+    for record in ({"host": 5, "pid": 1}, {"host": socket.gethostname(), "pid": "x"}, {"pid": 1}):
+        path.write_text(json.dumps(record))
+        assert claims.claim(path), record
+        claims.release(path)
+    for since in ("yesterday", 1e300, None, float("nan")):
+        path.write_text(json.dumps({"host": "another-machine", "pid": 7, "since": since}))
+        match = "another-machine since an unknown time"
+        with pytest.raises(claims.ClaimError, match=match), claims.held(path, "run X"):
+            pass
