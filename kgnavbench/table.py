@@ -374,29 +374,53 @@ def run_table(
             if not outcomes[n].reused:
                 done.append((kinds[n], outcomes[n].seconds))
     else:
-        # spawn: a fresh interpreter per worker (torch's thread pools do not survive a fork)
+        # spawn: a fresh interpreter per worker (torch's thread pools do not survive a fork); one
+        # single-worker pool per job, `workers` at a time, so that a worker killed by a signal or the
+        # OOM killer loses its own job only, named, while the others go on
         progress(f"== {len(jobs)} jobs, {workers} at a time, torch on one thread each")
         context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(
-            workers, mp_context=context, initializer=end_with_parent, initargs=(os.getpid(),)
-        ) as pool:
-            pending = {}
-            # the longest first, so that the last job does not run alone: the rows further down the
-            # spec add components (IL, TSE, the graph) and train slower
-            for n in reversed(range(len(jobs))):
-                row, seed = jobs[n]
-                # a worker's lines, prefixed with its job (two jobs' lines interleave); picklable
-                prefix = functools.partial(
-                    print, f"[{n + 1}/{len(jobs)}] {row.name} (seed {seed}):", flush=True
-                )
-                job = (spec, preset, row, seed, runs_dir, prefix, threads or 1, device)
-                pending[pool.submit(_job, *job)] = n
-            for future in concurrent.futures.as_completed(pending):
-                n = pending[future]
-                outcomes[n] = future.result()
-                if not outcomes[n].reused:
-                    done.append((kinds[n], outcomes[n].seconds))
-                progress(f"== done {title(n)} in {outcomes[n].seconds / 60:.1f} min{eta()}")
+        # the longest first, so that the last job does not run alone: the rows further down the spec
+        # add components (IL, TSE, the graph) and train slower
+        queue = list(reversed(range(len(jobs))))
+        running: dict[concurrent.futures.Future, tuple[int, concurrent.futures.Executor]] = {}
+        lost: list[int] = []
+        try:
+            while queue or running:
+                while queue and len(running) < workers:
+                    n = queue.pop(0)
+                    row, seed = jobs[n]
+                    # a worker's lines, prefixed with its job (two jobs' lines interleave); picklable
+                    prefix = functools.partial(print, f"{title(n)}:", flush=True)
+                    pool = concurrent.futures.ProcessPoolExecutor(
+                        1, mp_context=context, initializer=end_with_parent, initargs=(os.getpid(),)
+                    )
+                    job = (spec, preset, row, seed, runs_dir, prefix, threads or 1, device)
+                    running[pool.submit(_job, *job)] = (n, pool)
+                finished, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
+                for future in finished:
+                    n, pool = running.pop(future)
+                    pool.shutdown(wait=False)
+                    try:
+                        outcomes[n] = future.result()
+                    except concurrent.futures.process.BrokenProcessPool:
+                        lost.append(n)
+                        progress(
+                            f"== lost {title(n)}: its worker process died (a signal or the OOM killer); "
+                            "the other jobs go on"
+                        )
+                        continue
+                    if not outcomes[n].reused:
+                        done.append((kinds[n], outcomes[n].seconds))
+                    progress(f"== done {title(n)} in {outcomes[n].seconds / 60:.1f} min{eta()}")
+        finally:
+            for _, pool in running.values():
+                pool.shutdown(wait=False, cancel_futures=True)
+        if lost:
+            names = "; ".join(title(n) for n in sorted(lost))
+            raise TableError(
+                f"{len(lost)} of {len(jobs)} jobs lost their worker process ({names}); the others are "
+                "done: run the same command again to resume the lost ones and assemble the table"
+            )
     per_row: dict[str, RowResult] = {}
     for (row, _), outcome in zip(jobs, outcomes, strict=True):
         result = per_row.setdefault(row.name, RowResult(row, [], [], [], 0.0))

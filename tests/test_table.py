@@ -626,3 +626,56 @@ def test_a_row_without_unseen_kitchens_gets_no_cells_where_every_kitchen_is_unse
     row = dataclasses.replace(rows["FF A3C"], method="random_walk", options={})  # nothing to train
     _, run = run_row(spec, preset, row, 0, tmp_path, progress=lambda line: None)
     assert run.results == [] and not (tmp_path / "eval").exists()
+
+
+KILLER = '''"""A plugin whose worker dies: SIGKILL in make_policy, as the OOM killer would."""
+import os
+import signal
+
+DESCRIPTION = "dies"
+
+
+def make_policy(config, spec):
+    os.kill(os.getpid(), signal.SIGKILL)
+'''
+
+TWO_ROWS = """
+[protocol]
+success_rule = "destination"
+stop_ends = true
+seen_cap = 100
+unseen_cap = 1000
+checkpoint = "best_val_sr"
+
+[presets.tiny]
+frames = 1000
+episodes = 1
+seeds = 1
+train_kitchens = ["FloorPlan1"]
+eval_kitchens = ["FloorPlan1"]
+
+[[rows]]
+name = "Random walk"
+method = "random_walk"
+
+[[rows]]
+name = "Killed"
+method = "killer"
+"""
+
+
+def test_a_lost_worker_loses_its_job_only_named_and_a_rerun_resumes(tmp_path, hermetic_cache):
+    """With --workers 2, a job whose worker process is killed (a signal, the OOM killer) is named in
+    one line, exit 2; the other job finishes and is kept, so a rerun only reruns the lost one."""
+    (tmp_path / "baselines").mkdir()
+    (tmp_path / "baselines" / "killer.py").write_text(KILLER)
+    (tmp_path / "spec.toml").write_text(TWO_ROWS)
+    env = {**os.environ, "KGNAVBENCH_CACHE": str(hermetic_cache)}
+    command = [sys.executable, "-m", "kgnavbench", "table", "--spec", "spec.toml", "--preset", "tiny"]
+    command += ["--runs", "runs", "--out", "out", "--workers", "2"]
+    done = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and done.stderr.count("\n") == 1
+    assert "1 of 2 jobs lost their worker process ([2/2] Killed (seed 0))" in done.stderr
+    assert "== done [1/2] Random walk (seed 0)" in done.stdout
+    assert list((tmp_path / "runs" / "eval").glob("random_walk-*/episodes/FloorPlan1.jsonl"))
