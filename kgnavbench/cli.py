@@ -667,6 +667,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         args = build_parser().parse_args(_join_negative_values(argv))
+        # every path given is made absolute once, here: a plugin that changes the working directory
+        # cannot split one command's files between two folders
+        for name, value in vars(args).items():
+            if isinstance(value, Path):
+                setattr(args, name, value.absolute())
         return args.func(args)
     except BAD_INPUT as e:
         print(f"{PROG}: error: {e}", file=sys.stderr)

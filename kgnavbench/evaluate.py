@@ -622,16 +622,14 @@ def open_run(directory: Path, identity: dict, plugin: Plugin) -> None:
     if config_path.exists():
         try:
             old = json.loads(config_path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
             raise EvalError(
-                f"{config_path} is unreadable ({e}); delete the run directory to start over"
+                f"{config_path} is unreadable ({first_line(e)}); delete the run directory to start over"
             ) from e
-        if not isinstance(old, dict) or old.get("identity") != identity:
-            differ = sorted(
-                k
-                for k in identity
-                if not isinstance(old, dict) or old.get("identity", {}).get(k) != identity[k]
-            )
+        known = old.get("identity") if isinstance(old, dict) else None
+        if known != identity:
+            known = known if isinstance(known, dict) else {}  # any JSON at all: compare field by field
+            differ = sorted(k for k in identity if known.get(k) != identity[k])
             raise EvalError(
                 f"{directory} holds an evaluation with another {', '.join(differ) or 'config'}; "
                 "refusing to mix results (delete it to start over)"
@@ -647,7 +645,13 @@ def check_fixed_options(config: EvalConfig, plugin_config) -> None:
     selected_checkpoint(config.run, config.method, config.checkpoint)  # a run of this method, with it
     if not dataclasses.is_dataclass(plugin_config):
         return
-    trained = json.loads((Path(config.run) / "config.json").read_text()).get("options", {})
+    path = Path(config.run) / "config.json"
+    try:
+        trained = json.loads(path.read_text()).get("options")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError) as e:
+        raise EvalError(f"--run {config.run}: {path.name} is unreadable ({first_line(e)})") from e
+    if not isinstance(trained, dict):
+        raise EvalError(f"--run {config.run}: {path.name} holds no table of options (got {trained!r:.40})")
     resolved = json.loads(json.dumps(asdict(plugin_config)))
     differ = [k for k, _ in config.options if k in trained and resolved.get(k) != trained[k]]
     if differ:

@@ -51,8 +51,13 @@ def git_revision() -> str:
 
 
 def first_line(error: BaseException) -> str:
-    """An exception's message cut to its first line (torch's load errors run to a page)."""
-    return (str(error).strip().splitlines() or [""])[0]
+    """An exception's message cut to its first line (torch's load errors run to a page); an exception
+    whose message cannot be made (its __str__ raises) is named as such, never a second traceback."""
+    try:
+        text = str(error)
+    except Exception:  # noqa: BLE001 - a plugin's exception may be anything
+        return f"(an unprintable {type(error).__name__})"
+    return (text.strip().splitlines() or [""])[0]
 
 
 def duration_text(seconds: float) -> str:

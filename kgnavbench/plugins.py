@@ -48,6 +48,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from types import ModuleType
 
+from .files import first_line
 from .graph import VIEW_SIZE
 from .kitchens import object_types
 from .world import ACTIONS
@@ -136,9 +137,9 @@ def guarded(plugin: Plugin, what: str, function, *args):
                 f"{plugin.source}: {what} read infos[{e.args[0]!r}], which only a plugin with "
                 "PRIVILEGED = True may read"
             ) from e
-        raise PluginError(f"{plugin.source}: {what} failed: KeyError: {e}") from e
+        raise PluginError(f"{plugin.source}: {what} failed: KeyError: {first_line(e)}") from e
     except BaseException as e:  # noqa: BLE001 - a plugin's SystemExit must not end the benchmark silently
-        raise PluginError(f"{plugin.source}: {what} failed: {type(e).__name__}: {e}") from e
+        raise PluginError(f"{plugin.source}: {what} failed: {type(e).__name__}: {first_line(e)}") from e
 
 
 @dataclass
@@ -198,7 +199,7 @@ def load_plugin(name: str) -> Plugin:
     except KeyboardInterrupt:
         raise
     except BaseException as e:  # noqa: BLE001 - sys.exit() at import is a broken plugin, too
-        raise PluginError(f"{source}: failed to import: {type(e).__name__}: {e}") from e
+        raise PluginError(f"{source}: failed to import: {type(e).__name__}: {first_line(e)}") from e
     return check_plugin(name, source, module)
 
 
@@ -234,7 +235,9 @@ def make_config(plugin: Plugin, options: dict[str, str]):
     except KeyboardInterrupt:
         raise
     except BaseException as e:  # noqa: BLE001 - a Config whose __post_init__ rejects a value
-        raise PluginError(f"{plugin.source}: bad options {options}: {type(e).__name__}: {e}") from e
+        raise PluginError(
+            f"{plugin.source}: bad options {options}: {type(e).__name__}: {first_line(e)}"
+        ) from e
 
 
 OPTION_TYPES = (bool, int, float, str)

@@ -157,6 +157,8 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise TableError(f"{path}: not valid TOML ({e})") from e
+    except RecursionError as e:  # arrays or tables nested thousands deep
+        raise TableError(f"{path}: nested too deeply to be a table spec") from e
     _unknown(str(path), raw, {"protocol", "presets", "rows", "comparisons"})
     where = f"{path}: protocol"
     p = _field(str(path), raw, "protocol", dict)
@@ -285,9 +287,19 @@ def _comparisons(path: Path, tables: list, row_names: list[str]) -> tuple[Compar
     return tuple(out)
 
 
+MAX_SPEC_BYTES = 1_000_000  # the committed spec is about 20 kB; more is not a table spec
+
+
 def load_spec(path: Path | str = SPEC_FILE) -> TableSpec:
+    """The spec file (UTF-8 TOML, at most MAX_SPEC_BYTES); every problem is one TableError."""
     try:
-        text = Path(path).read_text()
+        data = Path(path).read_bytes()
     except OSError as e:
         raise TableError(f"table spec {path}: {e.strerror or e}") from e
+    if len(data) > MAX_SPEC_BYTES:
+        raise TableError(f"table spec {path}: {len(data):,} bytes, more than a spec's {MAX_SPEC_BYTES:,}")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise TableError(f"table spec {path}: not UTF-8 text (byte {e.start})") from e
     return parse_spec(text, path)

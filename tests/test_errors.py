@@ -75,6 +75,15 @@ BROKEN_POLICIES = {
         "infos['state'], which only a plugin with PRIVILEGED",
     ),
     "exits_on_import": ("import sys\nsys.exit('no')\n", "failed to import: SystemExit"),
+    "an_exception_that_cannot_be_printed": (
+        "class Mute(Exception):\n    def __str__(self):\n        raise ValueError('no words')\n"
+        + WALKER.format(reset="pass", act="raise Mute()"),
+        "act() failed: Mute: (an unprintable Mute)",
+    ),
+    "a_message_of_many_lines": (
+        WALKER.format(reset="pass", act="raise RuntimeError('first\\nsecond\\nthird')"),
+        "act() failed: RuntimeError: first",
+    ),
 }
 
 
@@ -332,3 +341,50 @@ def test_json_output_stays_json_when_the_cache_is_rebuilt(capsys, tmp_path, monk
         assert json.loads(out)["summary"]["all/all"]["sr"] == 100.0
     finally:
         graph_path.write_bytes(saved)
+
+
+CHDIR = WALKER.format(reset="pass", act="return {a: 9 for a in observations}").replace(
+    "def make_policy(config, spec):\n", "def make_policy(config, spec):\n    import os; os.chdir('/')\n"
+)
+
+
+def test_paths_are_resolved_once_whatever_a_plugin_does(capsys, local, floorplan1_tasks, monkeypatch):
+    """A plugin that changes the working directory in make_policy cannot split one evaluation between
+    two folders: --runs (relative here) was made absolute when the command started."""
+    (local / "wanderer.py").write_text(plugin(CHDIR))
+    monkeypatch.chdir(local.parent)
+    code, out, err = run(
+        capsys, "eval", "--method", "wanderer", "--kitchens", "FloorPlan1,FloorPlan2", "--episodes", "1",
+        "--runs", "relative-runs", "--json",
+    )  # fmt: skip
+    assert code == 0, err
+    monkeypatch.chdir(local.parent)
+    episodes = sorted(p.name for p in (local.parent / "relative-runs").glob("eval/*/episodes/*.jsonl"))
+    assert episodes == ["FloorPlan1.jsonl", "FloorPlan2.jsonl"]
+
+
+@pytest.mark.parametrize(
+    ("content", "named"),
+    [
+        (b"[protocol]\nx = " + b"[" * 5000 + b"]" * 5000 + b"\n", "nested too deeply"),
+        (b'[protocol]\nsuccess_rule = "\xff\xfe"\n', "not UTF-8"),
+        (b"# " + b"x" * 1_100_000 + b"\n", "more than a spec's"),
+    ],
+    ids=["deep", "not-utf8", "huge"],
+)
+def test_a_spec_file_that_is_no_spec(capsys, tmp_path, content, named):
+    spec = tmp_path / "bad.toml"
+    spec.write_bytes(content)
+    code, out, err = run(capsys, "table", "--spec", str(spec), "--runs", str(tmp_path / "runs"))
+    assert_one_line_error(code, err, "bad.toml", named)
+
+
+@pytest.mark.parametrize("identity", ["5", "[]", "null", '{"identity": 5}', '{"identity": []}'])
+def test_an_evaluations_config_json_of_any_shape_is_one_line(capsys, tmp_path, floorplan1_tasks, identity):
+    argv = ["eval", "--method", "random_walk", "--kitchens", "FloorPlan1", "--episodes", "1"]
+    argv += ["--runs", str(tmp_path)]
+    assert run(capsys, *argv)[0] == 0
+    (config,) = tmp_path.glob("eval/*/config.json")
+    config.write_text(identity)
+    code, out, err = run(capsys, *argv)
+    assert_one_line_error(code, err, "holds an evaluation with another")

@@ -878,3 +878,10 @@ def test_an_evaluation_reads_its_weights_once(capsys, tmp_path, floorplan1_tasks
     assert main([*base, "--episodes", "1", "--runs", str(tmp_path / "runs")]) == 2
     err = capsys.readouterr().err
     assert "trained by 'lstm_a3c' (its own record)" in err and err.count("\n") == 1
+    # a run's config.json whose options are no table: one line
+    for options in (None, [], "x"):
+        (run_dir / "config.json").write_text(json.dumps({**saved, "options": options}))
+        base = ["eval", "--method", "lstm_a3c", "--run", str(run_dir), "--kitchens", "FloorPlan1"]
+        assert main([*base, "--episodes", "1", "--runs", str(tmp_path / "runs"), "--set", "lr=0.001"]) == 2
+        err = capsys.readouterr().err
+        assert "config.json holds no table of options" in err and err.count("\n") == 1
