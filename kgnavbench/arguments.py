@@ -59,6 +59,17 @@ def positive(text: str) -> int:
     return integer_in(text, 1, 256)
 
 
+def seconds(text: str) -> float:
+    """A time limit in seconds: a finite number above 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text} is no time limit (a number of seconds above 0)")
+    return value
+
+
 def seed(text: str) -> int:
     return integer_in(text, 0, MAX_SEED)
 

@@ -34,7 +34,7 @@ import sys
 import time
 from pathlib import Path
 
-from . import arguments
+from . import arguments, plugins
 from .arguments import UsageError
 from .env import EnvError
 from .evaluate import SPLITS, EvalConfig, EvalError, checkpoint_name, evaluate, selected_checkpoint
@@ -45,6 +45,7 @@ from .tasks import EPISODES_PER_TARGET, load_tasks
 from .walk import MAX_SIZE, MIN_SIZE, WalkError, view_size, walk
 from .world import ACTIONS, WorldError
 
+METHODS_IMPORT_TIMEOUT = 20.0  # seconds `methods` gives each plugin file to import
 PROG = "kgnavbench"
 
 
@@ -177,6 +178,7 @@ def cmd_targets(args: argparse.Namespace) -> int:
 
 
 def cmd_methods(args: argparse.Namespace) -> int:
+    plugins.import_timeout = METHODS_IMPORT_TIMEOUT  # a plugin that blocks at import is listed, not waited on
     rows = []
     for name, source in plugin_sources().items():
         try:
@@ -189,6 +191,7 @@ def cmd_methods(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    plugins.step_timeout = args.step_timeout
     options = parse_options(args.set or [])
     load_plugin(args.method).config(options)  # unknown method or option: fail before any work
     config = EvalConfig(
@@ -532,6 +535,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="also record episodes with rerun")
+    p.add_argument(
+        "--step-timeout",
+        type=arguments.seconds,
+        metavar="SECONDS",
+        help="end the evaluation with one line if a policy's act() (or reset, make_policy) has not "
+        "returned within SECONDS; without it, kgnavbench says every minute which kitchen and step it "
+        "is waiting on",
+    )
     p.add_argument(
         "--record-episodes",
         type=arguments.positive,

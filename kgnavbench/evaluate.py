@@ -218,13 +218,16 @@ def evaluate_kitchen(
     agents = list(env.agents)
     episode_of = {agent: n for n, agent in enumerate(agents)}
     for agent in agents:
-        guarded(plugin, "reset()", policy.reset, agent)
+        guarded(plugin, "reset()", policy.reset, agent, where=kitchen)
     if callable(getattr(policy, "act_batch", None)):
         return _run_batched(plugin, policy, env, kitchen, columns, episodes)
     finished: dict[str, EpisodeResult] = {}
+    step = 0
     while env.agents:
         shown = infos if plugin.privileged else without_privileged(infos)
-        actions = guarded(plugin, "act()", policy.act, observations, shown)
+        step += 1
+        where = f"{kitchen}, step {step}"
+        actions = guarded(plugin, "act()", policy.act, observations, shown, where=where)
         check_actions(plugin, actions, env.agents)
         observations, _, terminations, truncations, infos = env.step(actions)
         for agent in list(observations):
@@ -240,10 +243,14 @@ def _run_batched(plugin, policy, env, kitchen: str, columns: list[str], episodes
     of per-agent dicts, the same agents in the same order, so the same actions and results as act()."""
     results: list[EpisodeResult | None] = [None] * len(episodes)
     live = np.arange(len(env.agents))  # the episode of each agent in env.agents (agent n runs episode n)
+    step = 0
     while env.agents:
         agents = env.agents
         shown = env.info_arrays(privileged=plugin.privileged)
-        actions = guarded(plugin, "act_batch()", policy.act_batch, agents, env.observation_arrays(), shown)
+        step += 1
+        observed = env.observation_arrays()
+        where = f"{kitchen}, step {step}"
+        actions = guarded(plugin, "act_batch()", policy.act_batch, agents, observed, shown, where=where)
         actions = check_action_array(plugin, actions, len(agents))
         _, terminated, truncated, infos = env.step_arrays(actions)
         ended = terminated | truncated

@@ -37,11 +37,15 @@ where `observations[key]` and `infos[key]` are arrays with one row per agent of 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib
 import importlib.util
 import math
+import signal
 import sys
+import threading
+import time
 import typing
 from dataclasses import dataclass
 from importlib.metadata import entry_points
@@ -122,11 +126,59 @@ class Plugin:
         return policy
 
 
-def guarded(plugin: Plugin, what: str, function, *args):
-    """Call plugin code; whatever it raises (sys.exit too) becomes a PluginError naming its file. Only
-    Ctrl-C goes through untouched."""
+import_timeout: float | None = None  # seconds a plugin file's import may take (`methods`: 20)
+
+# How long plugin code may run before kgnavbench says so (every WAIT_NOTE seconds, on stderr) or gives
+# up (`step_timeout`, eval's --step-timeout; None: never). Unix timers in the main thread: a plugin
+# call made anywhere else is not watched.
+WAIT_NOTE = 60.0
+step_timeout: float | None = None
+
+
+class PluginTimeout(PluginError):
+    """Plugin code ran past `step_timeout`."""
+
+
+@contextlib.contextmanager
+def watched(source: str, what: str, where: str = "", limit: float | None = None, note: float | None = None):
+    """While the block runs (plugin code), say every `note` seconds on stderr that kgnavbench is still
+    waiting for `what` of `source` (and `where`: the kitchen and step); past `limit` seconds, raise
+    PluginTimeout there: a plugin that never returns ends with one line, not a silent hang."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "setitimer"):
+        yield
+        return
+    start = time.monotonic()
+    place = f" ({where})" if where else ""
+    note = WAIT_NOTE if note is None else note
+
+    def alarm(signum, frame):
+        waited = time.monotonic() - start
+        if limit is not None and waited >= limit:
+            raise PluginTimeout(f"{source}: {what} did not return within {limit:g} s{place}")
+        print(f"kgnavbench: still waiting for {what} of {source}{place}: {waited:.0f} s", file=sys.stderr)
+        signal.setitimer(signal.ITIMER_REAL, _next_alarm(waited, limit, note))
+
+    previous = signal.signal(signal.SIGALRM, alarm)
+    signal.setitimer(signal.ITIMER_REAL, _next_alarm(0.0, limit, note))
     try:
-        return function(*args)
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def _next_alarm(waited: float, limit: float | None, note: float) -> float:
+    """Seconds to the next note, or to the limit if that comes first."""
+    upcoming = (waited // note + 1) * note - waited
+    return max(1e-3, min(upcoming, limit - waited) if limit is not None else upcoming)
+
+
+def guarded(plugin: Plugin, what: str, function, *args, where: str = ""):
+    """Call plugin code; whatever it raises (sys.exit too) becomes a PluginError naming its file. Only
+    Ctrl-C goes through untouched. Watched (`watched`): `where` names the kitchen and step."""
+    try:
+        with watched(plugin.source, what, where, step_timeout):
+            return function(*args)
     except KeyboardInterrupt:
         raise
     except PluginError:
@@ -195,7 +247,8 @@ def load_plugin(name: str) -> Plugin:
             spec = importlib.util.spec_from_file_location(f"kgnavbench_plugin_{name}", source)
             module = importlib.util.module_from_spec(spec)
             sys.modules[spec.name] = module  # dataclasses look their module up here
-            spec.loader.exec_module(module)
+            with watched(source, "its import", limit=import_timeout):
+                spec.loader.exec_module(module)
     except KeyboardInterrupt:
         raise
     except BaseException as e:  # noqa: BLE001 - sys.exit() at import is a broken plugin, too

@@ -388,3 +388,36 @@ def test_an_evaluations_config_json_of_any_shape_is_one_line(capsys, tmp_path, f
     config.write_text(identity)
     code, out, err = run(capsys, *argv)
     assert_one_line_error(code, err, "holds an evaluation with another")
+
+
+SLEEPER = WALKER.format(reset="pass", act="import time; time.sleep(3600)")
+
+
+def test_a_policy_that_never_returns_is_named_and_timed_out(capsys, local, floorplan1_tasks, monkeypatch):
+    """eval says which kitchen and step it is waiting on, and --step-timeout ends the run with one line
+    naming the plugin, the call and the place."""
+    from kgnavbench import plugins
+
+    monkeypatch.setattr(plugins, "WAIT_NOTE", 0.3)
+    monkeypatch.setattr(plugins, "step_timeout", None)
+    (local / "sleeper.py").write_text(plugin(SLEEPER))
+    argv = ["eval", "--method", "sleeper", "--kitchens", "FloorPlan1", "--episodes", "1"]
+    code = main([*argv, "--runs", str(local.parent / "runs"), "--step-timeout", "1"])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if not line.startswith("kgnavbench: still waiting")]
+    assert_one_line_error(code, "\n".join(lines) + "\n", "sleeper.py", "act() did not return within 1 s")
+    assert "FloorPlan1, step 1" in lines[0]
+    assert "kgnavbench: still waiting for act() of" in err and "(FloorPlan1, step 1)" in err
+    assert main([*argv, "--step-timeout", "0"]) == 2
+    assert "no time limit" in capsys.readouterr().err
+
+
+def test_methods_lists_a_plugin_that_blocks_at_import_without_waiting(capsys, local, monkeypatch):
+    from kgnavbench import cli
+
+    monkeypatch.setattr(cli, "METHODS_IMPORT_TIMEOUT", 1.0)
+    (local / "stuck.py").write_text("import time\ntime.sleep(3600)\n")
+    code, out, err = run(capsys, "methods")
+    assert code == 0
+    (line,) = [line for line in out.splitlines() if "stuck" in line]
+    assert "BROKEN" in line and "its import did not return within 1 s" in line
