@@ -593,6 +593,10 @@ def run_identity(config: EvalConfig, plugin: Plugin, plugin_config, weights: Wei
         "checkpoint_sha256": weights.sha256 if weights else None,
         "plugin_config": json.loads(json.dumps(dataclasses.asdict(plugin_config), default=str)),
         "plugin_source_sha256": hashlib.sha256(plugin.source_bytes()).hexdigest(),
+        # a file an option names (a plugin's own weights, a table): its content, so that a file
+        # rewritten at the same path is another evaluation, never the old one's results (only where
+        # an option names one: other evaluations keep their names)
+        **({"option_files_sha256": files} if (files := option_files_sha256(plugin_config)) else {}),
         "protocol": {
             "seen_cap": SEEN_CAP,
             "unseen_cap": UNSEEN_CAP,
@@ -601,6 +605,26 @@ def run_identity(config: EvalConfig, plugin: Plugin, plugin_config, weights: Wei
             "task_file_sha256": hashlib.sha256(TASKS_FILE.read_bytes()).hexdigest(),
         },
     }
+
+
+def option_files_sha256(plugin_config) -> dict[str, str]:
+    """{option: sha256 of the file it names} for every option of the plugin's config whose value is the
+    path of an existing file (relative to the working directory, as the plugin would open it)."""
+    if not dataclasses.is_dataclass(plugin_config):
+        return {}
+    out = {}
+    for name, value in sorted(dataclasses.asdict(plugin_config).items()):
+        if not isinstance(value, (str, Path)) or not str(value) or len(str(value)) > 4096:
+            continue
+        path = Path(value)
+        try:
+            if path.is_file():
+                out[name] = hashlib.sha256(path.read_bytes()).hexdigest()
+        except OSError as e:  # named but unreadable: say so rather than hash nothing
+            raise EvalError(
+                f"option {name}={value!r} names a file that cannot be read: {e.strerror or e}"
+            ) from e
+    return out
 
 
 @dataclass

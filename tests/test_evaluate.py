@@ -1,6 +1,7 @@
 """The evaluation protocol (evaluate stage): SPL and the other metrics on hand-computed episodes,
 columns and caps, the oracle's 100/100, determinism and resuming a run."""
 
+import dataclasses
 import json
 import math
 
@@ -280,3 +281,49 @@ def test_a_results_file_without_its_checksum_is_rerun_never_trusted(tmp_path, fl
     again = evaluate(config, tmp_path, progress=lambda line: None)
     assert again.resumed == [] and again.results == run.results and path.read_text() == good
     assert "checksum FloorPlan1.jsonl.sha256 is missing" in capsys.readouterr().err
+
+
+FILE_POLICY = """
+from dataclasses import dataclass
+
+DESCRIPTION = "acts the one action its weights file holds"
+
+
+@dataclass
+class Config:
+    weights: str = ""
+
+
+class Policy:
+    def __init__(self, action):
+        self.action = action
+
+    def reset(self, agent):
+        pass
+
+    def act(self, observations, infos):
+        return {agent: self.action for agent in observations}
+
+
+def make_policy(config, spec):
+    with open(config.weights) as f:
+        return Policy(int(f.read()))
+"""
+
+
+def test_a_rewritten_weights_file_is_a_new_evaluation(tmp_path, monkeypatch, floorplan1_tasks):
+    """An evaluation's identity covers the content of every file an option names: the same path
+    rewritten gives new results, never the old ones resumed."""
+    (tmp_path / "baselines").mkdir()
+    (tmp_path / "baselines" / "filed.py").write_text(FILE_POLICY)
+    monkeypatch.chdir(tmp_path)
+    weights = tmp_path / "weights.txt"
+    config = EvalConfig("filed", options=(("weights", str(weights)),), kitchens=("FloorPlan1",))
+    config = dataclasses.replace(config, episodes_per_target=1)
+    weights.write_text("9")  # Stop at once
+    first = evaluate(config, tmp_path / "runs", progress=lambda line: None)
+    weights.write_text("2")  # turn forever
+    second = evaluate(config, tmp_path / "runs", progress=lambda line: None)
+    assert second.directory != first.directory and second.resumed == []
+    assert {r.episode_length for r in first.results} == {1}
+    assert min(r.episode_length for r in second.results) > 1
