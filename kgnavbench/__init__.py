@@ -3,8 +3,17 @@
 Importing the package registers its Gymnasium ids (kgnavbench/vecenv.py): `kgnavbench/FloorPlan1-v0`
 .. `kgnavbench/FloorPlan30-v0`, `kgnavbench/train-v0`, `kgnavbench/val-v0`, `kgnavbench/test-v0`. The
 registration names the entry points as strings, so it imports neither torch nor the env: the
-command line starts fast.
+command line starts fast. `kgnavbench.evaluate_policy` (kgnavbench/evaluate.py) evaluates a policy of
+your own on Table I's fixed episodes; it loads on first use.
 """
+
+
+def __getattr__(name: str):
+    if name == "evaluate_policy":  # on first use: importing the package stays light
+        from .evaluate import evaluate_policy
+
+        return evaluate_policy
+    raise AttributeError(f"module 'kgnavbench' has no attribute {name!r}")
 
 
 def _register_gymnasium_ids() -> None:

@@ -786,3 +786,121 @@ def describe(config: EvalConfig) -> str:
             else ""
         )
     )
+
+
+# ------------------------------------------------------------------------------------------------
+# Your own policy, without a plugin file
+
+OBSERVATION_KEYS = ("features", "target_features", "view_objects", "target_objects")  # the vector env's
+
+
+@dataclass
+class _GivenPlugin:
+    """What evaluate_kitchen needs of a plugin, for a policy handed over in Python."""
+
+    policy: object
+    deterministic: bool
+    source: str = "evaluate_policy(policy)"
+    privileged: bool = False
+
+    def make_policy(self, config, spec):
+        return _BatchedPolicy(self.policy, self.deterministic)
+
+
+class _BatchedPolicy:
+    """A callable on batched observations, or an object with Stable-Baselines3's predict, as a batched
+    evaluation policy. The observations are a dict of arrays with a leading agent axis, keyed as the
+    Gymnasium vector env's (`features`, `target_features`, `view_objects`, `target_objects`). For
+    `predict`, `episode_start` is True on each agent's first step, and a recurrent state (a tuple of
+    arrays, SB3's) is kept per agent: its agent axis is the one as long as the batch (axis 1 of
+    sb3-contrib's (layers, agents, units) LSTM states)."""
+
+    def __init__(self, policy, deterministic: bool):
+        self.policy, self.deterministic = policy, deterministic
+        self.predict = getattr(policy, "predict", None)
+        if not callable(self.predict) and not callable(policy):
+            raise EvalError("evaluate_policy needs a callable on observations or an object with predict()")
+        self.state: dict[str, tuple] = {}  # agent -> its recurrent state (one row per array)
+        self.axes: tuple[int, ...] = ()  # each state array's agent axis
+        self.fresh: set[str] = set()
+
+    def reset(self, agent: str) -> None:
+        self.fresh.add(agent)
+        self.state.pop(agent, None)
+
+    def act(self, observations, infos):  # evaluate_kitchen prefers act_batch
+        agents = list(observations)
+        batch = {k: np.stack([observations[a][k] for a in agents]) for k in OBSERVATION_KEYS}
+        return dict(zip(agents, self._actions(agents, batch).tolist()))
+
+    def act_batch(self, agents, observations, infos):
+        return self._actions(list(agents), {k: np.asarray(observations[k]) for k in OBSERVATION_KEYS})
+
+    def _actions(self, agents: list[str], batch: dict) -> np.ndarray:
+        if not callable(self.predict):
+            return np.asarray(self.policy(batch)).reshape(len(agents)).astype(np.int64)
+        starts = np.array([a in self.fresh for a in agents])
+        self.fresh.difference_update(agents)
+        rows = [self.state.get(a) for a in agents]
+        state = None
+        if rows and all(r is not None for r in rows):  # every agent's state, stacked back on its axis
+            state = tuple(np.stack([r[i] for r in rows], axis=axis) for i, axis in enumerate(self.axes))
+        actions, state = self.predict(
+            batch, state=state, episode_start=starts, deterministic=self.deterministic
+        )
+        if state is not None:
+            arrays = tuple(np.asarray(s) for s in state)
+            self.axes = tuple(_batch_axis(s, len(agents)) for s in arrays)
+            for j, agent in enumerate(agents):
+                self.state[agent] = tuple(np.take(s, j, axis=axis) for s, axis in zip(arrays, self.axes))
+        return np.asarray(actions).reshape(len(agents)).astype(np.int64)
+
+
+def _batch_axis(array: np.ndarray, n: int) -> int:
+    """The agent axis of a recurrent state array: axis 1 where it is as long as the batch (sb3-contrib's
+    (layers, agents, units)), else the first one that is."""
+    if array.ndim >= 2 and array.shape[1] == n:
+        return 1
+    for axis, size in enumerate(array.shape):
+        if size == n:
+            return axis
+    raise EvalError(f"a recurrent state of shape {array.shape} has no axis for the {n} agents")
+
+
+def evaluate_policy(
+    policy,
+    *,
+    split: str = "table",
+    kitchens=None,
+    episodes: int = EPISODES_PER_TARGET,
+    success_rule: str = "destination",
+    seed: int = 0,
+    deterministic: bool = False,
+    progress=None,
+) -> dict:
+    """Table I's fixed episodes for your own policy, no plugin file: the same episodes, caps and rules
+    as `kgnavbench eval`, and the same summary as `eval --json` ({"summary": {"column/kind": metrics}},
+    an empty cell's NaN as None), with the number of episodes.
+
+    `policy` is a callable on batched observations (a dict of arrays with a leading agent axis, keyed
+    as the Gymnasium vector env's: features, target_features, view_objects, target_objects) returning
+    one action per agent, or any object with Stable-Baselines3's `predict(observation, state=None,
+    episode_start=None, deterministic=False)` (a trained SB3 model; a recurrent one's state is kept per
+    agent through `episode_start`). Nothing is written to disk; results are not cached."""
+    config = EvalConfig(
+        method="evaluate_policy",
+        success_rule=success_rule,
+        split=split,
+        kitchens=tuple(kitchens or ()),
+        episodes_per_target=episodes,
+        seed=seed,
+    )
+    plugin = _GivenPlugin(policy, deterministic)
+    results = []
+    for kitchen in config.kitchen_list():
+        t0 = time.perf_counter()
+        done = evaluate_kitchen(plugin, None, config, kitchen)
+        results += done
+        if progress:
+            progress(f"{kitchen}: {len(done)} episodes in {time.perf_counter() - t0:.1f} s")
+    return {"summary": summary_as_json(summarize(results)), "episodes": len(results)}

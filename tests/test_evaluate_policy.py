@@ -1,0 +1,87 @@
+"""`kgnavbench.evaluate_policy`: your own policy on Table I's fixed episodes, without a plugin file,
+as a callable on batched observations or as an object with Stable-Baselines3's predict."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import kgnavbench
+from kgnavbench.evaluate import EvalConfig, evaluate, summary_as_json
+from kgnavbench.graph import STOP
+
+TURNER = """
+DESCRIPTION = "turns right, then stops on its fourth step"
+
+
+class Policy:
+    def reset(self, agent):
+        self.steps = {}
+
+    def act(self, observations, infos):
+        return {a: 9 if self.steps.setdefault(a, []).append(0) or len(self.steps[a]) >= 4 else 4
+                for a in observations}
+
+
+def make_policy(config, spec):
+    return Policy()
+"""
+
+
+def test_a_callable_gives_the_summary_eval_gives_a_plugin(tmp_path, monkeypatch, floorplan1_tasks):
+    """The same actions through evaluate_policy and through a plugin file: the same summary."""
+    steps = {"n": 0}
+
+    def turner(observations):
+        n = len(observations["features"])
+        assert set(observations) >= {"features", "target_features", "view_objects", "target_objects"}
+        assert observations["features"].shape == (n, 512)
+        steps["n"] += 1
+        return np.full(n, STOP if steps["n"] >= 4 else 4)
+
+    got = kgnavbench.evaluate_policy(turner, kitchens=["FloorPlan1"], episodes=2)
+    (tmp_path / "baselines").mkdir()
+    (tmp_path / "baselines" / "turner.py").write_text(TURNER)
+    monkeypatch.chdir(tmp_path)
+    config = EvalConfig("turner", kitchens=("FloorPlan1",), episodes_per_target=2)
+    want = evaluate(config, tmp_path / "runs", progress=lambda line: None).summary
+    assert got["summary"] == summary_as_json(want)
+    assert got["episodes"] == want[("all", "all")].episodes
+    assert {m["episode_length"] for m in got["summary"].values() if m["episodes"]} == {4.0}
+
+
+class Recurrent:
+    """A predict() with an sb3-contrib-shaped state (layers, agents, units): each agent's state must
+    come back to it, counting its steps; episode_start is True on its first step only."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+        n = len(observation["features"])
+        self.calls += 1
+        if self.calls == 1:
+            assert state is None and episode_start.all()
+            state = (np.zeros((1, n, 3)), np.zeros((1, n, 3)))
+        else:
+            assert not episode_start.any() and state[0].shape == (1, n, 3)
+            assert (state[0][0, :, 0] == self.calls - 1).all()  # every agent's own count came back
+        counted = tuple(s + 1 for s in state)
+        actions = np.where(counted[0][0, :, 0] >= 3, STOP, 4)
+        return actions, counted
+
+
+def test_an_sb3_style_predict_keeps_each_agents_recurrent_state(floorplan1_tasks):
+    got = kgnavbench.evaluate_policy(Recurrent(), kitchens=["FloorPlan1"], episodes=1)
+    assert {m["episode_length"] for m in got["summary"].values() if m["episodes"]} == {3.0}
+
+
+def test_a_stable_baselines3_model_is_evaluated_in_one_call(floorplan1_tasks):
+    gymnasium = pytest.importorskip("gymnasium")
+    sb3 = pytest.importorskip("stable_baselines3")
+    env = gymnasium.make("kgnavbench/FloorPlan1-v0")
+    model = sb3.PPO("MultiInputPolicy", env, n_steps=16, batch_size=16, seed=0, device="cpu")
+    got = kgnavbench.evaluate_policy(model, kitchens=["FloorPlan1"], episodes=1)
+    assert got["episodes"] == got["summary"]["all/all"]["episodes"] > 0
+    with pytest.raises(ValueError, match="callable on observations or an object with predict"):
+        kgnavbench.evaluate_policy(object(), kitchens=["FloorPlan1"], episodes=1)
