@@ -212,13 +212,17 @@ def cmd_eval(args: argparse.Namespace) -> int:
     progress = (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else print
     if args.record is not None and not str(args.record).endswith(".rrd"):
         raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
+    if args.video is not None and args.video.suffix.lower() != ".mp4":
+        raise UsageError(f"--video {args.video}: a video file must end in .mp4")
     if args.record is not None:
         arguments.writable_file(args.record, "--record")
+    if args.video is not None:
+        arguments.writable_file(args.video, "--video")
     arguments.writable_folder(args.runs, "--runs")
     # with --json, stdout is the JSON alone: whatever a plugin prints goes to stderr
     with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
         run = evaluate(config, args.runs, progress=progress)
-    if args.record is not None:
+    if args.record is not None or args.video is not None:
         from .record import RecordError, record_episodes  # rerun loads only when recording
 
         try:
@@ -239,10 +243,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
                     else None
                 ),
                 max_steps=args.record_steps,
+                video=args.video,
             )
         except RecordError as e:
             raise UsageError(str(e)) from e
-        progress(f"recorded {done['episodes']} episodes ({done['steps']} steps) to {args.record}")
+        where = " and ".join(str(p) for p in (args.record, args.video) if p is not None)
+        progress(f"recorded {done['episodes']} episodes ({done['steps']} steps) to {where}")
     if args.json:
         summary = {f"{c}/{k}": vars(m) for (c, k), m in run.summary.items()}
         record = {"run": str(run.directory), "summary": summary}
@@ -535,6 +541,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="also record episodes with rerun")
+    p.add_argument(
+        "--video",
+        type=Path,
+        metavar="FILE.mp4",
+        help="also write the recorded episodes (--record-episodes) as a video: the view and the target "
+        "image beside the top-down map, the action in its caption",
+    )
     p.add_argument(
         "--step-timeout",
         type=arguments.seconds,

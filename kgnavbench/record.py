@@ -169,11 +169,19 @@ def _map_pixel(world, size: int):
     return lambda x, z: (int(round((x - x0 + margin) * scale)), int(round((z1 + margin - z) * scale)))
 
 
-def _map_frame(graph, trail: list[int], target, bumps: list[tuple[int, int]], caption: str) -> bytes:
-    """The top-down map after the states of `trail` as PNG bytes (flat colours: PNG is small and exact),
-    with a caption strip above it. On top of render.top_down_map's path, agent and outlined target: the
-    start (white dot), the destination (yellow ring) and each failed move (red cross at the obstacle
-    side of the cell; `bumps` holds (state, action))."""
+def _png(rgb: np.ndarray) -> bytes:
+    """An RGB image as PNG bytes (flat colours: PNG is small and exact)."""
+    ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise RecordError("OpenCV could not encode the map as PNG")
+    return png.tobytes()
+
+
+def _map_image(graph, trail: list[int], target, bumps: list[tuple[int, int]], caption: str) -> np.ndarray:
+    """The top-down map after the states of `trail` (RGB), with a caption strip above it. On top of
+    render.top_down_map's path, agent and outlined target: the start (white dot), the destination
+    (yellow ring) and each failed move (red cross at the obstacle side of the cell; `bumps` holds
+    (state, action))."""
     poses = [graph.pose(s) for s in trail]
     rgb = top_down_map(graph.world, MAP_SIZE, [poses[-1]], poses, [target.object_index])
     px = _map_pixel(graph.world, MAP_SIZE)
@@ -189,10 +197,45 @@ def _map_frame(graph, trail: list[int], target, bumps: list[tuple[int, int]], ca
     cv2.circle(rgb, px(d.x, d.z), 7, (255, 220, 0), 2, cv2.LINE_AA)
     strip = np.full((18, MAP_SIZE, 3), 40, np.uint8)
     cv2.putText(strip, caption, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
-    ok, png = cv2.imencode(".png", cv2.cvtColor(np.vstack([strip, rgb]), cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise RecordError("OpenCV could not encode the map as PNG")
-    return png.tobytes()
+    return np.vstack([strip, rgb])
+
+
+class VideoSink:
+    """Episodes as a video (OpenCV's VideoWriter, mp4v): per frame the egocentric view and the target
+    image on the left, the top-down map with its caption (episode, step, action) on the right; a still
+    title card between episodes is left out: the caption says which episode it is."""
+
+    FPS = 4
+    VIEW = 240  # px, the view and the target image each, scaled up from the env's views (nearest)
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.size = (self.VIEW + MAP_SIZE, max(2 * self.VIEW, MAP_SIZE + 18))
+        self.partial = self.path.with_name(f".{self.path.stem}.partial{self.path.suffix}")
+        self.writer = cv2.VideoWriter(str(self.partial), cv2.VideoWriter_fourcc(*"mp4v"), self.FPS, self.size)
+        if not self.writer.isOpened():
+            raise RecordError(f"OpenCV cannot write a video to {self.path} (mp4v)")
+        self.frames = 0
+
+    def frame(self, view: np.ndarray, target: np.ndarray, map_rgb: np.ndarray) -> None:
+        width, height = self.size
+        canvas = np.full((height, width, 3), 30, np.uint8)
+        for k, image in enumerate((view, target)):
+            scaled = cv2.resize(image, (self.VIEW, self.VIEW), interpolation=cv2.INTER_NEAREST)
+            canvas[k * self.VIEW : (k + 1) * self.VIEW, : self.VIEW] = scaled
+        label = (8, self.VIEW + 20)
+        cv2.putText(canvas, "target", label, cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        canvas[: map_rgb.shape[0], self.VIEW : self.VIEW + map_rgb.shape[1]] = map_rgb
+        self.writer.write(cv2.cvtColor(canvas, cv2.COLOR_RGB2BGR))
+        self.frames += 1
+
+    def close(self) -> None:
+        self.writer.release()
+        os.replace(self.partial, self.path)
+
+    def discard(self) -> None:
+        self.writer.release()
+        self.partial.unlink(missing_ok=True)
 
 
 def _policy_spec(config: evaluate.EvalConfig, seed: int, view_size: int, checkpoint):
@@ -217,8 +260,10 @@ def record_episodes(
     max_steps: int | None = None,
     stop_ends: bool = True,
     run=None,
+    video=None,
 ) -> dict:
-    """Record `episodes` fixed episodes of method `plugin_name` into the .rrd file `path`.
+    """Record `episodes` fixed episodes of method `plugin_name` into the .rrd file `path` and/or the
+    video file `video` (.mp4: `VideoSink`).
 
     The policy is built as in an evaluation (same config, same PolicySpec and per-kitchen seed); the
     episodes are the task file's first fixed start of the kitchens' first targets (kitchens: default
@@ -227,7 +272,10 @@ def record_episodes(
     best-validation checkpoint an evaluation would test) or `checkpoint` (a file; it wins).
     Returns {"path", "episodes", "steps", "successes", "collisions"}.
     """
-    path = _rrd_path(path)  # before minutes of work, not after
+    if path is None and video is None:
+        raise RecordError("record_episodes needs a .rrd path, a video path, or both")
+    path = _rrd_path(path) if path is not None else None  # before minutes of work, not after
+    video = _video_path(video) if video is not None else None
     if not isinstance(episodes, int) or episodes < 1:
         raise RecordError(f"episodes must be a positive integer, not {episodes!r}")
     if max_steps is not None and (not isinstance(max_steps, int) or max_steps < 1):
@@ -252,7 +300,8 @@ def record_episodes(
     chosen = _episode_list(kitchens, episodes)
 
     rec, partial = None, None
-    totals = {"path": str(path), "episodes": 0, "steps": 0, "successes": 0, "collisions": 0}
+    film = VideoSink(video) if video is not None else None
+    totals = {"path": str(path or video), "episodes": 0, "steps": 0, "successes": 0, "collisions": 0}
     step = 0
     try:
         for kitchen in dict.fromkeys(k for k, _ in chosen):
@@ -261,7 +310,7 @@ def record_episodes(
             kitchen_seed = seed * 1000 + KITCHEN_NAMES.index(kitchen)  # evaluate_kitchen's seed
             spec = _policy_spec(config, kitchen_seed, graph.views.shape[1], checkpoint)
             policy = plugin.make_policy(plugin_config, spec)
-            if rec is None:  # the layout depends on whether the policy can explain itself
+            if rec is None and path is not None:  # the layout: whether the policy can explain itself
                 explains = callable(getattr(policy, "explain", None))
                 rec, partial = _open_stream(path, EPISODES_APP, _episode_blueprint(explains))
             env = parallel_env(
@@ -275,22 +324,50 @@ def record_episodes(
             )
             for row in (r for k, r in chosen if k == kitchen):
                 e = totals["episodes"]
-                step, info = _record_episode(rec, plugin, policy, env, tasks, row, e, step, max_steps)
+                step, info = _record_episode(
+                    rec or _NO_RECORDING, plugin, policy, env, tasks, row, e, step, max_steps, film
+                )
                 totals["episodes"] += 1
                 totals["steps"] += info["episode_length"]
                 totals["successes"] += int(info["success"])
                 totals["collisions"] += info["collisions"]
-        _close_stream(rec, partial, path)
+        if rec is not None:
+            _close_stream(rec, partial, path)
+        if film is not None:
+            film.close()
     except BaseException:
         if rec is not None:
             _discard(rec, partial)
+        if film is not None:
+            film.discard()
         raise
     return totals
 
 
-def _record_episode(rec, plugin, policy, env, tasks, row: int, e: int, step: int, max_steps):
-    """Run and log one episode from global step `step`: its start there, each action one step later.
-    Returns the next free step and the episode's last info."""
+class _NoRecording:
+    """A rerun recording stream that records nothing (a video alone was asked for)."""
+
+    def set_time(self, *args, **kwargs) -> None:
+        pass
+
+    def log(self, *args, **kwargs) -> None:
+        pass
+
+
+_NO_RECORDING = _NoRecording()
+
+
+def _video_path(path) -> Path:
+    path = Path(path)
+    if path.suffix.lower() != ".mp4":
+        raise RecordError(f"{path}: a video file must end in .mp4")
+    return path
+
+
+def _record_episode(rec, plugin, policy, env, tasks, row: int, e: int, step: int, max_steps, film=None):
+    """Run and log one episode from global step `step`: its start there, each action one step later;
+    with `film` (a VideoSink) one video frame per row too. Returns the next free step and the
+    episode's last info."""
     graph = tasks.graph
     target = tasks.targets[row]
     column = evaluate.column_of(tasks.split, target.seen)
@@ -313,17 +390,18 @@ def _record_episode(rec, plugin, policy, env, tasks, row: int, e: int, step: int
         rec.set_time("step", sequence=s)
         rec.set_time("episode", sequence=e)
 
+    def show(caption: str) -> None:  # the view and the map after the trail so far
+        image = _map_image(graph, trail, target, bumps, caption)
+        rec.log("view", rr.Image(observations[agent]["view"]))
+        if rec is not _NO_RECORDING:
+            rec.log("map", rr.EncodedImage(contents=_png(image), media_type="image/png"))
+        if film is not None:
+            film.frame(observations[agent]["view"], observations[agent]["target"], image)
+
     at(step)
     rec.log("episode", rr.TextDocument(header, media_type=rr.MediaType.MARKDOWN))
     rec.log("target", rr.Image(observations[agent]["target"]))
-    rec.log("view", rr.Image(observations[agent]["view"]))
-    rec.log(
-        "map",
-        rr.EncodedImage(
-            contents=_map_frame(graph, trail, target, bumps, f"episode {e} start"),
-            media_type="image/png",
-        ),
-    )
+    show(f"episode {e} start")
     total_return = 0.0
     info = infos[agent]
     while env.agents:
@@ -347,14 +425,7 @@ def _record_episode(rec, plugin, policy, env, tasks, row: int, e: int, step: int
             " (failed: collision)" if failed and a in MOVES else " (failed)" if failed else ""
         )
         rec.log("action", rr.TextLog(name, level="WARN" if failed else "INFO"))
-        rec.log("view", rr.Image(observations[agent]["view"]))
-        caption = f"ep {e} step {info['episode_length']}: {name}  collisions {info['collisions']}"
-        rec.log(
-            "map",
-            rr.EncodedImage(
-                contents=_map_frame(graph, trail, target, bumps, caption), media_type="image/png"
-            ),
-        )
+        show(f"ep {e} step {info['episode_length']}: {name}  collisions {info['collisions']}")
         rec.log("scalars/reward", rr.Scalars(rewards[agent]))
         rec.log("scalars/return", rr.Scalars(total_return))
         rec.log("scalars/collisions", rr.Scalars(info["collisions"]))

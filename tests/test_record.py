@@ -2,6 +2,7 @@
 the viewer command, exact t-SNE, and the OpenCV figures."""
 
 import json
+import re
 import subprocess
 import sys
 import textwrap
@@ -366,3 +367,25 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     assert [p.name for p in paths] == ["collisions_unseen.png"]
     assert calls == [(spec, "smoke", tmp_path / "runs", notes.append)]
     assert len(notes) == 3  # no training runs: the t-SNE and both curves are skipped
+
+
+def test_eval_video_writes_a_video_that_opencv_reads_back(capsys, tmp_path, floorplan1_tasks):
+    """`eval --video FILE.mp4`: the recorded episodes as frames (the view and the target beside the
+    map), one per start and per action; no .rrd needed; a name that is no .mp4 is one line."""
+    import cv2
+
+    from kgnavbench.cli import main
+
+    video = tmp_path / "oracle.mp4"
+    argv = ["eval", "--method", "oracle", "--kitchens", "FloorPlan1", "--episodes", "1"]
+    argv += ["--runs", str(tmp_path / "runs"), "--record-episodes", "2"]
+    assert main([*argv, "--video", str(video)]) == 0
+    out = capsys.readouterr().out
+    steps = int(re.search(r"recorded 2 episodes \((\d+) steps\)", out).group(1))
+    capture = cv2.VideoCapture(str(video))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == steps + 2  # each episode's start, each action
+    ok, frame = capture.read()
+    assert ok and frame.shape == (480, 560, 3) and frame.std() > 10  # drawn, not blank
+    assert not list(tmp_path.glob(".*partial*"))
+    assert main([*argv, "--video", str(tmp_path / "oracle.avi")]) == 2
+    assert "must end in .mp4" in capsys.readouterr().err
