@@ -93,6 +93,8 @@ def main() -> None:
     if unknown:
         parser.error(f"unknown rows {unknown}; the spec has {', '.join(rows)}")
     overrides = dict(kv.split("=", 1) for kv in args.set)
+    if args.every:
+        overrides["keep_every"] = str(args.every)
     frames = args.frames or preset.frames
     kitchens = tuple(preset.train_kitchens)
     points = []
@@ -100,10 +102,8 @@ def main() -> None:
         row = rows[name]
         for seed in (int(s) for s in args.seeds.split(",")):
             # the table's own options (its runs are reused), snapshots as asked, the candidate's changes
-            if args.every:
-                overrides["keep_every"] = str(args.every)
             options = {**preset.options, **row.options, **overrides}
-            options.setdefault("keep_every", str(args.every or 5_000_000))
+            options.setdefault("keep_every", "5000000")
             start = time.perf_counter()
             directory = train_method(row.method, options, frames, seed, kitchens, args.runs, progress=print)
             print(

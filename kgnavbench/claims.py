@@ -18,6 +18,8 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+from .files import one_line
+
 
 class ClaimError(RuntimeError):
     """The thing is claimed by another live process (the message says which)."""
@@ -127,8 +129,7 @@ def describe(record: dict | None) -> str:
 
 def _short(value, width: int = 60) -> str:
     """A record's field for a message: one short line whatever it holds."""
-    text = value if isinstance(value, str) else repr(value)
-    return "".join(c if c.isprintable() else "?" for c in text)[:width]
+    return one_line(value if isinstance(value, str) else repr(value))[:width]
 
 
 @contextmanager

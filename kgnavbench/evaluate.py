@@ -828,11 +828,6 @@ class _BatchedPolicy:
         self.fresh.add(agent)
         self.state.pop(agent, None)
 
-    def act(self, observations, infos):  # evaluate_kitchen prefers act_batch
-        agents = list(observations)
-        batch = {k: np.stack([observations[a][k] for a in agents]) for k in OBSERVATION_KEYS}
-        return dict(zip(agents, self._actions(agents, batch).tolist()))
-
     def act_batch(self, agents, observations, infos):
         return self._actions(list(agents), {k: np.asarray(observations[k]) for k in OBSERVATION_KEYS})
 

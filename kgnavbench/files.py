@@ -60,6 +60,12 @@ def first_line(error: BaseException) -> str:
     return (text.strip().splitlines() or [""])[0]
 
 
+def one_line(text: str) -> str:
+    """Text as one line of printable characters (control characters, newlines included, become spaces):
+    a name or a field put into a message, a table cell or a printed command."""
+    return "".join(c if c.isprintable() else " " for c in text)
+
+
 def duration_text(seconds: float) -> str:
     """A duration for a progress line's ETA: '40 s', '12 min', '2 h 05 min'."""
     seconds = max(0.0, seconds)

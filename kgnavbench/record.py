@@ -215,7 +215,6 @@ class VideoSink:
         self.writer = cv2.VideoWriter(str(self.partial), cv2.VideoWriter_fourcc(*"mp4v"), self.FPS, self.size)
         if not self.writer.isOpened():
             raise RecordError(f"OpenCV cannot write a video to {self.path} (mp4v)")
-        self.frames = 0
 
     def frame(self, view: np.ndarray, target: np.ndarray, map_rgb: np.ndarray) -> None:
         width, height = self.size
@@ -227,7 +226,6 @@ class VideoSink:
         cv2.putText(canvas, "target", label, cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
         canvas[: map_rgb.shape[0], self.VIEW : self.VIEW + map_rgb.shape[1]] = map_rgb
         self.writer.write(cv2.cvtColor(canvas, cv2.COLOR_RGB2BGR))
-        self.frames += 1
 
     def close(self) -> None:
         self.writer.release()

@@ -44,7 +44,7 @@ from .evaluate import (
     git_revision,
     spl_term,
 )
-from .files import atomic_write, end_with_parent
+from .files import atomic_write, end_with_parent, one_line
 from .intervals import (
     REPLICATES,
     VERDICTS,
@@ -281,11 +281,6 @@ def job_commands(spec: TableSpec, preset_name: str, runs_dir: Path | str) -> lis
     return [
         f"{base} --job {n + 1}  # {one_line(row.name)} (seed {seed})" for n, (row, seed) in enumerate(jobs)
     ]
-
-
-def one_line(text: str) -> str:
-    """A name as one line of printable text (control characters, newlines included, become spaces)."""
-    return "".join(c if c.isprintable() else " " for c in text)
 
 
 def run_job(
