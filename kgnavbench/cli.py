@@ -13,7 +13,7 @@
     kgnavbench train --method NAME [--set KEY=VALUE] [--frames N] [--seed S] [--kitchens A,B]
                      [--runs DIR] [--record FILE.rrd] [--device auto|cpu|cuda]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR] [--workers N]
-                     [--jobs | --job N | --worker] [--device auto|cpu|cuda]
+                     [--jobs | --job N | --worker] [--trained DIR | --train-only] [--device auto|cpu|cuda]
     kgnavbench figures [--preset quick] [--runs DIR] [--out DIR]
     kgnavbench view FILE.rrd
     kgnavbench encoder pretrain [--epochs N] [--samples-per-epoch N] [--shift PX] [--seed S] [--out FILE]
@@ -361,7 +361,7 @@ def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
     from .distributed import DistributedError
     from .runs import TrainError
-    from .table import job_commands, run_job, run_table, run_worker, to_markdown, write_table
+    from .table import Sources, job_commands, run_job, run_table, run_worker, to_markdown, write_table
     from .table_spec import SPEC_FILE, TableError, load_spec
 
     def say(line: str) -> None:
@@ -375,17 +375,32 @@ def cmd_table(args: argparse.Namespace) -> int:
         if args.jobs:
             print("\n".join(job_commands(spec, args.preset, args.runs)))
             return 0
+        if args.trained is not None and not args.trained.is_dir():
+            raise UsageError(f"--trained {args.trained}: no such folder")
+        if args.trained is not None and args.train_only:
+            raise UsageError(
+                "--trained takes runs already trained; --train-only trains them: one or the other"
+            )
+        sources = Sources(args.trained, args.train_only)
         arguments.writable_folder(args.runs, "--runs")
-        if args.job is None and not args.worker:
+        assembles = args.job is None and not args.worker and not args.train_only
+        if assembles:
             arguments.writable_folder(args.out or spec.path.parent, "--out")
         if args.job is not None or args.worker:
             if args.job is not None:
-                run_job(spec, args.preset, args.job, args.runs, progress=say, device=device)
+                run_job(spec, args.preset, args.job, args.runs, progress=say, device=device, sources=sources)
             else:
-                run_worker(spec, args.preset, args.runs, progress=say, device=device)
-            print(f"then `kgnavbench table --preset {args.preset} --runs {args.runs}` assembles the table")
+                run_worker(spec, args.preset, args.runs, progress=say, device=device, sources=sources)
+        if not assembles:
+            if args.job is None and not args.worker:
+                run_table(spec, args.preset, args.runs, say, args.workers, device, sources)
+            trained = f" --trained {args.trained}" if args.trained is not None else ""
+            print(
+                f"then `kgnavbench table --preset {args.preset} --runs {args.runs}{trained}` evaluates "
+                "what is left and assembles the table"
+            )
             return 0
-        result = run_table(spec, args.preset, args.runs, progress=say, workers=args.workers, device=device)
+        result = run_table(spec, args.preset, args.runs, say, args.workers, device, sources)
         paths = write_table(result, args.out or spec.path.parent)
     except (TableError, TrainError, DistributedError) as e:
         raise UsageError(str(e)) from e
@@ -646,6 +661,20 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="take the next unclaimed job from the runs folder until none is left (no table); start "
         "one per machine or core that shares the runs folder, then run `table` to assemble",
+    )
+    p.add_argument(
+        "--trained",
+        type=Path,
+        metavar="DIR",
+        help="take every trained run from DIR (zoo/, or another runs folder) and only evaluate and "
+        "assemble: a run there counts when its method, options, frames, seed and kitchens are the "
+        "preset's, whatever code revision trained it; a missing one is an error, never trained",
+    )
+    p.add_argument(
+        "--train-only",
+        action="store_true",
+        help="train the preset's runs (all, or --job N's, or a --worker's) and stop: no evaluation, "
+        "no table; a later `table` evaluates and assembles",
     )
     _device_option(p)
     p.set_defaults(func=cmd_table)

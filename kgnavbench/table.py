@@ -23,6 +23,7 @@ import concurrent.futures
 import csv
 import functools
 import io
+import json
 import multiprocessing
 import os
 import time
@@ -35,6 +36,7 @@ from typing import NamedTuple
 import torch
 
 from . import claims
+from .device import DeviceError, name_of, resolve
 from .evaluate import (
     COLUMN_TITLES,
     EpisodeResult,
@@ -56,7 +58,7 @@ from .intervals import (
 )
 from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, load_plugin
-from .runs import train_method
+from .runs import run_record, train_method, training_kitchens
 from .table_spec import (
     CELL_KEYS,
     CELL_TITLES,
@@ -140,26 +142,111 @@ def eval_kitchens(preset: Preset, row: Row) -> tuple[str, ...]:
     return kitchens
 
 
+@dataclass(frozen=True)
+class Sources:
+    """Where a job's trained run comes from and what the job does with it: by default it trains (or
+    finds, or resumes) the run in the runs folder and evaluates it. `trained`: take the finished run
+    from that folder instead (a zoo of shipped runs, or another runs folder) and never train.
+    `train_only`: train, and leave evaluating and assembling to a later `table`."""
+
+    trained: Path | None = None
+    train_only: bool = False
+
+
+# what a run's config.json must share with a row's job to be that job's run in a `trained` folder; the
+# code's hashes are left out: a shipped run stays usable after later changes to the training code
+TRAINED_RUN_KEYS = ("method", "options", "frames", "seed", "kitchens", "world_size", "device")
+
+
+def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Path:
+    """The finished run in `folder` (its run folders, or those of its train/) whose config matches
+    `record` (`run_record`) on TRAINED_RUN_KEYS. Trained by other code than this checkout's, it is
+    used with a line that says from which revision."""
+    want = {key: record[key] for key in TRAINED_RUN_KEYS}
+    nearest: tuple[int, str] | None = None  # (keys that differ, which) of the closest run, for the error
+    candidates = sorted({*folder.glob("*/config.json"), *folder.glob("train/*/config.json")})
+    for config_path in candidates:
+        try:
+            config = json.loads(config_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            continue  # not a run's config: nothing to match
+        if not isinstance(config, dict) or config.get("method") != record["method"]:
+            continue
+        differ = [key for key in TRAINED_RUN_KEYS if config.get(key) != want[key]]
+        if isinstance(config.get("options"), dict) and "options" in differ:
+            options = config["options"]
+            differ.remove("options")
+            differ += [
+                f"options.{k}"
+                for k in sorted({*options, *want["options"]})
+                if options.get(k) != want["options"].get(k)
+            ]
+        if differ:
+            if nearest is None or len(differ) < nearest[0]:
+                nearest = (len(differ), f"{config_path.parent} differs in {', '.join(differ[:6])}")
+            continue
+        run_dir = config_path.parent
+        if not (run_dir / "finished.json").exists():
+            raise TableError(f"row {row_name!r} (seed {record['seed']}): {run_dir} is not finished")
+        if config.get("training_code_sha256") != record["training_code_sha256"]:
+            revision = one_line(str(config.get("git_revision", "?")))[:12]
+            progress(
+                f"{run_dir}: trained by the code of revision {revision}, not this checkout's training "
+                "code; used as shipped"
+            )
+        return run_dir
+    hint = f"; the closest, {nearest[1]}" if nearest else ""
+    raise TableError(
+        f"row {row_name!r} (seed {record['seed']}): no finished {record['method']} run in {folder} "
+        f"trained as the preset says{hint}"
+    )
+
+
 def run_row(
-    spec: TableSpec, preset: Preset, row: Row, seed: int, runs_dir: Path, progress, device: str = "cpu"
+    spec: TableSpec,
+    preset: Preset,
+    row: Row,
+    seed: int,
+    runs_dir: Path,
+    progress,
+    device: str = "cpu",
+    sources: Sources = Sources(),
 ) -> tuple:
     """Train (or find, or resume) one row's run for one seed on `device`, then evaluate its best
-    checkpoint."""
+    checkpoint (the eval run is None under `sources.train_only`)."""
     trains = _trains(row)
     options = dict(row.options)
     run_dir = None
     if trains:
         options = {**preset.options, **row.options}
-        run_dir = train_method(
-            row.method,
-            options,
-            preset.frames,
-            seed,
-            preset.train_kitchens,
-            runs_dir,
-            progress=progress,
-            device=device,
-        )
+        if sources.trained is not None:
+            plugin = load_plugin(row.method)
+            try:
+                on = name_of(resolve(device))
+            except DeviceError as e:
+                raise TableError(str(e)) from e
+            record = run_record(
+                plugin,
+                plugin.config(options),
+                preset.frames,
+                seed,
+                training_kitchens(preset.train_kitchens),
+                on,
+            )
+            run_dir = trained_run(sources.trained, record, row.name, progress)
+        else:
+            run_dir = train_method(
+                row.method,
+                options,
+                preset.frames,
+                seed,
+                preset.train_kitchens,
+                runs_dir,
+                progress=progress,
+                device=device,
+            )
+    if sources.train_only:
+        return run_dir, None
     kitchens = eval_kitchens(preset, row)
     config = EvalConfig(
         method=row.method,
@@ -218,6 +305,7 @@ def _job(
     progress,
     threads: int,
     device: str = "cpu",
+    sources: Sources = Sources(),
 ) -> JobOutcome:
     """One row and seed, trained (or found) and evaluated: what the table keeps of it. Runs in the
     table's process or in a worker process (with `threads` torch threads: 1 where jobs run side by
@@ -227,18 +315,21 @@ def _job(
     started = time.time()
     t0 = time.perf_counter()
     try:
-        run_dir, run = run_row(spec, preset, row, seed, runs_dir, progress, device)
+        run_dir, run = run_row(spec, preset, row, seed, runs_dir, progress, device, sources)
     except PluginError as e:
         raise TableError(f"row {row.name!r}: {e}") from e
-    # a row found done on disk took seconds, not what a row of its kind takes: no ETA sample
-    if run_dir is not None:
+    # a row found done on disk took seconds, not what a row of its kind takes: no ETA sample (a
+    # shipped run's job is its evaluation)
+    if run_dir is not None and sources.trained is None:
         reused = (run_dir / "finished.json").stat().st_mtime < started
-    else:
+    elif run is not None:
         reused = len(run.resumed) == len(run.config.kitchen_list())
+    else:
+        reused = True
     return JobOutcome(
-        cell_episodes(run.results),
+        cell_episodes(run.results) if run is not None else {},
         str(run_dir) if run_dir else "",
-        str(run.directory),
+        str(run.directory) if run is not None else "",
         time.perf_counter() - t0,
         reused,
     )
@@ -259,12 +350,16 @@ def _preset(spec: TableSpec, preset_name: str) -> Preset:
     return spec.presets[preset_name]
 
 
-def job_claim(runs_dir: Path | str, preset: Preset, n: int, row: Row, seed: int) -> Path:
-    """Where job n's claim lives: named by the preset, the job's number, its row and its seed."""
+def job_claim(
+    runs_dir: Path | str, preset: Preset, n: int, row: Row, seed: int, sources: Sources = Sources()
+) -> Path:
+    """Where job n's claim lives: named by the preset, the job's number, its row and its seed (and
+    "train" for training only: a job trained is not a job evaluated)."""
+    kind = "train-" if sources.train_only else ""
     return (
         Path(runs_dir)
         / "claims"
-        / f"table-{preset.name}-{n + 1:03d}-{zlib.crc32(row.name.encode()):08x}-s{seed}.claim"
+        / f"table-{kind}{preset.name}-{n + 1:03d}-{zlib.crc32(row.name.encode()):08x}-s{seed}.claim"
     )
 
 
@@ -290,6 +385,7 @@ def run_job(
     runs_dir: Path | str = "runs",
     progress=print,
     device: str = "cpu",
+    sources: Sources = Sources(),
 ) -> None:
     """Job `number` (from 1, as `job_commands` prints it): train (or find, or resume) and evaluate."""
     preset = _preset(spec, preset_name)
@@ -298,11 +394,16 @@ def run_job(
         raise TableError(f"preset {preset.name!r} has jobs 1..{len(jobs)}, not {number}")
     row, seed = jobs[number - 1]
     progress(f"== [{number}/{len(jobs)}] {row.name} (seed {seed})")
-    _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads, device)
+    _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads, device, sources)
 
 
 def run_worker(
-    spec: TableSpec, preset_name: str, runs_dir: Path | str = "runs", progress=print, device: str = "cpu"
+    spec: TableSpec,
+    preset_name: str,
+    runs_dir: Path | str = "runs",
+    progress=print,
+    device: str = "cpu",
+    sources: Sources = Sources(),
 ) -> list[int]:
     """Take the next unclaimed job of the preset, run it, mark it done, until none is left; returns
     the numbers (from 1) of the jobs this worker ran. Several workers, on this machine or on others
@@ -312,12 +413,15 @@ def run_worker(
     jobs = table_jobs(spec, preset)
     ran = []
     for n, (row, seed) in enumerate(jobs):
-        path = job_claim(runs_dir, preset, n, row, seed)
+        # training only: a job of a row that does not train is nobody's, and its claim is not taken
+        if sources.train_only and not _trains(row):
+            continue
+        path = job_claim(runs_dir, preset, n, row, seed, sources)
         if not claims.claim(path):
             continue
         try:
             progress(f"== [{n + 1}/{len(jobs)}] {row.name} (seed {seed}): claimed by pid {os.getpid()}")
-            _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads, device)
+            _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads, device, sources)
         except BaseException:
             claims.release(path)
             raise
@@ -334,6 +438,7 @@ def run_table(
     progress=print,
     workers: int = 1,
     device: str = "cpu",
+    sources: Sources = Sources(),
 ) -> TableResult:
     """Every row and seed (a job each), with progress and an ETA; resumable (see the module docstring).
     `workers` > 1 runs that many jobs at once in worker processes (torch on the preset's `threads`,
@@ -348,6 +453,9 @@ def run_table(
     rows = preset_rows(spec, preset)
     jobs = table_jobs(spec, preset)
     kinds = [_trains(row) for row, _ in jobs]
+    if sources.train_only:  # only the jobs that train
+        jobs = [job for job, trains in zip(jobs, kinds, strict=True) if trains]
+        kinds = [True] * len(jobs)
     outcomes: list[JobOutcome | None] = [None] * len(jobs)
     # torch's threads in every job, training (the option) and evaluation alike: the spec's, so that a
     # job's numbers do not depend on how many run at once (threads change the sums' order)
@@ -365,7 +473,7 @@ def run_table(
     if workers == 1:
         for n, (row, seed) in enumerate(jobs):
             progress(f"== {title(n)}{eta()}")
-            outcomes[n] = _job(spec, preset, row, seed, runs_dir, progress, threads, device)
+            outcomes[n] = _job(spec, preset, row, seed, runs_dir, progress, threads, device, sources)
             if not outcomes[n].reused:
                 done.append((kinds[n], outcomes[n].seconds))
     else:
@@ -389,7 +497,7 @@ def run_table(
                     pool = concurrent.futures.ProcessPoolExecutor(
                         1, mp_context=context, initializer=end_with_parent, initargs=(os.getpid(),)
                     )
-                    job = (spec, preset, row, seed, runs_dir, prefix, threads or 1, device)
+                    job = (spec, preset, row, seed, runs_dir, prefix, threads or 1, device, sources)
                     running[pool.submit(_job, *job)] = (n, pool)
                 finished, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
                 for future in finished:
@@ -423,7 +531,7 @@ def run_table(
         result.train_runs.append(outcome.train_run)
         result.eval_runs.append(outcome.eval_run)
         result.seconds += outcome.seconds
-    results = [per_row[row.name] for row in rows]
+    results = [per_row[row.name] for row in rows if row.name in per_row]  # (training only: trained rows)
     return TableResult(spec, preset, results, time.perf_counter() - start, git_revision())
 
 

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import os
 import re
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -553,6 +555,57 @@ def test_two_workers_split_the_jobs_and_table_then_only_assembles(tmp_path, herm
     assert _numbers((runs / "table1-smoke.md").read_text()) == _numbers(
         (tmp_path / "one" / "table1-smoke.md").read_text()
     )
+
+
+def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path, capsys):
+    """`--train-only` trains the preset's runs and writes no table; `--trained ZOO` takes finished runs
+    from a flat folder (as zoo/ ships them), matched by their options and not by the code that trained
+    them, evaluates them without training and writes the table a plain `table` writes; a run missing
+    from the zoo is one line naming the row and seed, never trained."""
+    # the smoke preset with two rows, one that trains
+    text = SPEC_FILE.read_text()
+    head, tail = text.split("[presets.smoke]\n", 1)
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(f'{head}[presets.smoke]\nrows = ["Random walk", "LSTM A3C"]\n{tail}')
+    smoke = ["table", "--spec", str(spec_path), "--preset", "smoke", "--workers", "1"]
+    trained = tmp_path / "trained"
+    assert main(smoke + ["--runs", str(trained), "--train-only"]) == 0
+    out = capsys.readouterr().out
+    assert "evaluates what is left and assembles" in out
+    assert not (trained / "eval").exists() and not list(tmp_path.rglob("table1-smoke.md"))
+    assert len(list((trained / "train").glob("*/finished.json"))) == 1
+
+    # the zoo: the same runs, one folder each, as if trained by an older revision of the training code
+    zoo = tmp_path / "zoo"
+    for run in (trained / "train").iterdir():
+        shutil.copytree(run, zoo / run.name)
+        config = json.loads((zoo / run.name / "config.json").read_text())
+        config["training_code_sha256"], config["git_revision"] = "0" * 64, "0123456789abcdef"
+        (zoo / run.name / "config.json").write_text(json.dumps(config))
+    shipped = tmp_path / "shipped"
+    assert main(smoke + ["--runs", str(shipped), "--out", str(shipped), "--trained", str(zoo)]) == 0
+    out = capsys.readouterr().out
+    assert "trained by the code of revision 0123456789ab" in out and "used as shipped" in out
+    assert not (shipped / "train").exists()  # nothing trained
+    # the same table as the runs' own folder assembles (it evaluates them there, training nothing)
+    assert main(smoke + ["--runs", str(trained), "--out", str(trained)]) == 0
+    assert "nothing to do" in capsys.readouterr().out
+    assert _numbers((shipped / "table1-smoke.md").read_text()) == _numbers(
+        (trained / "table1-smoke.md").read_text()
+    )
+
+    # a run missing from the zoo, or trained with other options: one line, nothing trained
+    missing = sorted(zoo.iterdir())[0]
+    config = json.loads((missing / "config.json").read_text())
+    config["options"]["lr"] = 0.5
+    (missing / "config.json").write_text(json.dumps(config))
+    elsewhere = tmp_path / "elsewhere"
+    assert main(smoke + ["--runs", str(elsewhere), "--trained", str(zoo)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"run in {zoo}" in err and "differs in options.lr" in err, err
+    assert not (elsewhere / "train").exists()
+    assert main(smoke + ["--trained", str(tmp_path / "nowhere"), "--runs", str(elsewhere)]) == 2
+    assert "no such folder" in capsys.readouterr().err
 
 
 def test_jobs_prints_one_command_per_job_and_job_checks_its_number(capsys, tmp_path):
