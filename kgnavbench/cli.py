@@ -10,8 +10,8 @@
                     [--split table|train|val|test] [--kitchens A,B] [--episodes N] [--set KEY=VALUE]
                     [--seed S] [--runs DIR] [--run TRAIN_RUN [--checkpoint best|last]] [--json]
                     [--record FILE.rrd] [--record-episodes N] [--record-steps N] [--device auto|cpu|cuda]
-    kgnavbench train --method NAME [--set KEY=VALUE] [--frames N] [--seed S] [--kitchens A,B]
-                     [--runs DIR] [--record FILE.rrd] [--device auto|cpu|cuda]
+    kgnavbench train --method NAME [--preset quick|paper [--spec FILE]] [--set KEY=VALUE] [--frames N]
+                     [--seed S] [--kitchens A,B] [--runs DIR] [--record FILE.rrd] [--device auto|cpu|cuda]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR] [--workers N]
                      [--jobs | --job N | --worker] [--trained DIR | --train-only] [--device auto|cpu|cuda]
     kgnavbench figures [--preset quick] [--runs DIR] [--out DIR]
@@ -272,6 +272,22 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     options = parse_options(args.set or [])
     kitchens = arguments.kitchen_list(args.kitchens) if args.kitchens is not None else ()
+    frames = args.frames if args.frames is not None else 10_000_000
+    if args.preset is not None:  # Table I's protocol: the preset's options under --set's
+        from .table_spec import SPEC_FILE, TableError, load_spec
+
+        try:
+            spec = load_spec(args.spec or SPEC_FILE)
+        except TableError as e:
+            raise UsageError(str(e)) from e
+        if args.preset not in spec.presets:
+            raise UsageError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
+        preset = spec.presets[args.preset]
+        options = {**preset.options, **options}
+        frames = args.frames if args.frames is not None else preset.frames
+        kitchens = kitchens or preset.train_kitchens
+    elif args.spec is not None:
+        raise UsageError("--spec names where --preset comes from: give --preset too")
     if args.record is not None:
         if not str(args.record).endswith(".rrd"):
             raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
@@ -281,7 +297,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         directory = train_method(
             args.method,
             options,
-            frames=args.frames,
+            frames=frames,
             seed=args.seed,
             kitchens=kitchens,
             runs_dir=args.runs,
@@ -598,9 +614,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method", required=True, metavar="NAME", help="a learned plugin (see `kgnavbench methods`)"
     )
+    p.add_argument(
+        "--preset",
+        metavar="NAME",
+        help="train under a Table I preset's protocol (quick, paper, ... of the spec): its options "
+        "(--set's win), frames and kitchens; the run is the one `kgnavbench table` trains for a row "
+        "with the same options. Without it: the plugin's own defaults, 10M frames",
+    )
+    p.add_argument(
+        "--spec", type=Path, help="the table spec --preset comes from (default tables/table1.toml)"
+    )
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a training option (repeatable)")
     p.add_argument(
-        "--frames", type=arguments.frames, default=10_000_000, help="frames (agent steps) to train"
+        "--frames",
+        type=arguments.frames,
+        help="frames (agent steps) to train (default: the preset's, else 10,000,000)",
     )
     p.add_argument("--seed", type=arguments.seed, default=0, help="seed (default 0)")
     p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")

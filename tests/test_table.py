@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -606,6 +607,46 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     assert not (elsewhere / "train").exists()
     assert main(smoke + ["--trained", str(tmp_path / "nowhere"), "--runs", str(elsewhere)]) == 2
     assert "no such folder" in capsys.readouterr().err
+
+
+def test_train_with_a_preset_trains_the_run_the_table_would(tmp_path, capsys):
+    """`train --preset P` is Table I's protocol for one row: the preset's options, frames and kitchens,
+    so `table --preset P` finds that run finished; --set wins over the preset; a bad preset is one line."""
+    text = SPEC_FILE.read_text()
+    head, tail = text.split("[presets.smoke]\n", 1)
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(f'{head}[presets.smoke]\nrows = ["LSTM A3C"]\n{tail}')
+    runs_dir = tmp_path / "runs"
+    train = [
+        "train",
+        "--method",
+        "lstm_a3c",
+        "--spec",
+        str(spec_path),
+        "--preset",
+        "smoke",
+        "--runs",
+        str(runs_dir),
+    ]
+    assert main(train) == 0
+    directory = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    config = json.loads((directory / "config.json").read_text())
+    smoke = load_spec(spec_path).presets["smoke"]
+    assert config["frames"] == smoke.frames and config["kitchens"] == list(smoke.train_kitchens)
+    assert config["options"]["lstm"] == 32 and config["options"]["agents_per_kitchen"] == 7
+    assert (
+        main(
+            ["table", "--spec", str(spec_path), "--preset", "smoke", "--runs", str(runs_dir), "--train-only"]
+            + ["--workers", "1"]
+        )
+        == 0
+    )
+    assert f"{directory} is a finished run" in capsys.readouterr().out
+    assert main(train + ["--set", "lstm=16", "--frames", "500"]) == 0
+    config = json.loads((Path(capsys.readouterr().out.strip().splitlines()[-1]) / "config.json").read_text())
+    assert config["options"]["lstm"] == 16 and config["frames"] == 500
+    assert main(["train", "--method", "lstm_a3c", "--preset", "nope", "--runs", str(runs_dir)]) == 2
+    assert "unknown preset 'nope'" in capsys.readouterr().err
 
 
 def test_jobs_prints_one_command_per_job_and_job_checks_its_number(capsys, tmp_path):
