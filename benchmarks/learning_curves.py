@@ -8,13 +8,15 @@ finished run is reused: with the paper preset's own options these are the table'
 evaluates every snapshot, and the run's best.pt (Table I's checkpoint rule) and last.pt, as
 `kgnavbench eval --run DIR --checkpoint frames-N --split train --episodes E` does (evaluations are
 resumed and reused too): seen kitchens with seen targets (static and actionable, cap 100) and with
-unseen targets (static, cap 1000). The validation SR is the run's own at that snapshot (metrics.csv).
+unseen targets (static, cap 1000), and the 5 test kitchens (unseen kitchens, static, cap 1000: what
+the validation kitchens stand in for when Table I's rule picks a checkpoint). The validation SR is the
+run's own at that snapshot (metrics.csv).
 
 It writes OUT.csv (columns row, seed, frames, seen_seen_static_sr, seen_seen_actionable_sr,
-seen_unseen_static_sr, val_sr, checkpoint) and OUT.png (the curves, the paper's 40M numbers marked),
-and prints the table. Rows run one after another in one process: to use two cores, run two processes
-with different `--rows` and the same `--runs`, then once more with all rows (it only evaluates and
-draws). Never beside a speed benchmark.
+seen_unseen_static_sr, val_sr, checkpoint, unseen_static_sr) and OUT.png (the curves, the paper's 40M
+numbers marked), and prints the table. Rows run one after another in one process: to use two cores,
+run two processes with different `--rows` and the same `--runs`, then once more with all rows (it
+only evaluates and draws). Never beside a speed benchmark.
 
     python benchmarks/learning_curves.py --runs ~/kgnav-runs --rows +IL+TSE          # one core
     python benchmarks/learning_curves.py --runs ~/kgnav-runs --rows +KG+Attention    # the other
@@ -51,11 +53,13 @@ COLUMNS = (
     "seen_unseen_static_sr",
     "val_sr",
     "checkpoint",  # frames-N (a snapshot), best (Table I's rule) or last
+    "unseen_static_sr",  # the 5 test kitchens: what the validation kitchens stand in for
 )
-CELLS = {  # column of the CSV: (Table I column, kind)
-    "seen_seen_static_sr": ("seen_seen", "static"),
-    "seen_seen_actionable_sr": ("seen_seen", "actionable"),
-    "seen_unseen_static_sr": ("seen_unseen", "static"),
+CELLS = {  # column of the CSV: (split, Table I column, kind)
+    "seen_seen_static_sr": ("train", "seen_seen", "static"),
+    "seen_seen_actionable_sr": ("train", "seen_seen", "actionable"),
+    "seen_unseen_static_sr": ("train", "seen_unseen", "static"),
+    "unseen_static_sr": ("test", "unseen_kitchens", "static"),
 }
 
 
@@ -139,20 +143,23 @@ def curve(name, method, options, seed, directory: Path, episodes: int, runs: Pat
     checkpoints = [*snapshots, (best_frames(directory), "best"), (final, "last")]
     out = []
     for at, which in checkpoints:
-        config = EvalConfig(
-            method=method,
-            options=tuple(sorted(options.items())),
-            split="train",
-            kitchens=kitchens,  # the run's training kitchens (empty: all 20)
-            episodes_per_target=episodes,
-            run=str(directory),
-            checkpoint=which,
-        )
         start = time.perf_counter()
-        summary = evaluate(config, runs, progress=lambda line: None).summary
+        summaries = {}
+        for split in ("train", "test"):
+            config = EvalConfig(
+                method=method,
+                options=tuple(sorted(options.items())),
+                split=split,
+                # the run's training kitchens (empty: all 20); the test split's 5 kitchens
+                kitchens=kitchens if split == "train" else (),
+                episodes_per_target=episodes,
+                run=str(directory),
+                checkpoint=which,
+            )
+            summaries[split] = evaluate(config, runs, progress=lambda line: None).summary
         point = {"row": name, "seed": seed, "frames": at, "checkpoint": which}
-        for column, cell in CELLS.items():
-            m = summary.get(cell)
+        for column, (split, *cell) in CELLS.items():
+            m = summaries[split].get(tuple(cell))
             point[column] = f"{m.sr:.2f}" if m is not None and m.episodes else ""
         point["val_sr"] = val.get(at, "")
         print(f"{name} (seed {seed}) {which} at {at:,} frames: {point} ({time.perf_counter() - start:.0f} s)")
@@ -173,20 +180,23 @@ def best_frames(directory: Path) -> int:
 
 
 def figure(points: list[dict], paper: dict, path: Path, preset: str, overrides: dict) -> None:
-    """Seen/seen static SR and seen/unseen static SR of the snapshots over frames, one line per row
-    and seed; the paper's 40M numbers marked in the same colour (hollow squares at 40M)."""
+    """The snapshots' SR over frames (seen/seen, seen/unseen and unseen kitchens, static; the
+    validation SR), one line per row, seed and column; the paper's 40M numbers marked in the same
+    colour (hollow squares at 40M)."""
     series, marks = {}, {}
-    panels = (("seen_seen_static_sr", "seen/seen", "seen_seen/static"),
-              ("seen_unseen_static_sr", "seen/unseen", "seen_unseen/static"))  # fmt: skip
+    panels = (("seen_seen_static_sr", "seen/seen static", "seen_seen/static"),
+              ("seen_unseen_static_sr", "seen/unseen static", "seen_unseen/static"),
+              ("unseen_static_sr", "unseen kitchens static", "unseen_kitchens/static"),
+              ("val_sr", "validation", None))  # fmt: skip
     for column, label, cell in panels:
         for p in points:
             if not p["checkpoint"].startswith("frames-"):
                 continue
-            key = f"{p['row']} s{p['seed']}, {label} static"
+            key = f"{p['row']} s{p['seed']}, {label}"
             xs, ys = series.setdefault(key, ([], []))
             xs.append(p["frames"] / 1e6)
             ys.append(float(p[column]) if p[column] != "" else math.nan)
-            if cell in paper.get(p["row"], {}):
+            if cell is not None and cell in paper.get(p["row"], {}):
                 marks[key] = [(40.0, paper[p["row"]][cell][1])]
     title = f"Learning curves, {preset} preset" + (
         " with " + ", ".join(f"{k}={v}" for k, v in overrides.items()) if overrides else ""

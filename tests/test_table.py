@@ -91,7 +91,8 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
     control = rows["+IL+TSE, object detections, no graph"]
     assert control.method == "lstm_a3c"
     assert control.options == {"il": "true", "tse": "true", "detections": "true"}
-    assert spec.presets["paper"].rows == ()
+    # the paper preset: the paper's nine rows and the control row (issue 25), in the paper's order
+    assert list(spec.presets["paper"].rows) == [*PAPER_ROWS, "+IL+TSE, object detections, no graph"]
 
 
 GOOD = SPEC_FILE.read_text()
