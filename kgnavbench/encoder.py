@@ -163,14 +163,6 @@ def standardize(features, stats: dict) -> Tensor:
     return (f.float() - stats["mean"]) / stats["std"].clamp_min(0.1)
 
 
-def feature_bounds(stats: dict) -> tuple[np.ndarray, np.ndarray]:
-    """The (512,) float32 lowest and highest standardized feature: of the cached float16 ReLU features'
-    range, 0 .. 65504 (an observation space's bounds)."""
-    low = standardize(np.zeros(FEATURE_DIM, np.float32), stats).numpy()
-    high = standardize(np.full(FEATURE_DIM, np.finfo(np.float16).max, np.float32), stats).numpy()
-    return low, high
-
-
 _stats_cache: dict[str, dict] = {}
 
 

@@ -50,6 +50,8 @@ Evaluation passes fixed episodes: reset(options={"episodes": [{"target": id, "st
 
 from __future__ import annotations
 
+import difflib
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -72,6 +74,13 @@ TRAINING_MAX_STEPS = 5000
 TARGET_SETS = ("seen", "unseen", "all")
 OBSERVATION_FORMATS = ("dict", "box")
 IS_MOVE = np.isin(np.arange(len(ACTIONS)), MOVES)  # per action: a move (a failed one is a collision)
+
+
+RESET_OPTIONS = ("episodes",)  # reset(options=...): the fixed episodes, one per agent
+
+
+class UnknownOptionWarning(UserWarning):
+    """reset(options=...) with a key the env does not know (and that is no near miss of one)."""
 
 
 class EnvError(ValueError):
@@ -193,10 +202,11 @@ class NavigationEnv(ParallelEnv):
             raise EnvError(f"unknown success_rule {success_rule!r}; choose one of {SUCCESS_RULES}")
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise EnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
-        if not isinstance(n_agents, int) or n_agents < 1:
+        if not _is_integer(n_agents) or n_agents < 1:
             raise EnvError(f"n_agents must be a positive integer, not {n_agents!r}")
-        if not isinstance(max_steps, int) or max_steps < 1:
+        if not _is_integer(max_steps) or max_steps < 1:
             raise EnvError(f"max_steps must be a positive integer, not {max_steps!r}")
+        n_agents, max_steps = int(n_agents), int(max_steps)
         self.tasks = tasks if tasks is not None else load_tasks(kitchen, view_size)
         self.kitchen = self.tasks.kitchen
         self.graph = self.tasks.graph
@@ -231,19 +241,17 @@ class NavigationEnv(ParallelEnv):
         if features or observation == "box":
             # the encoder's standardized per-state features, as the learned agents see them (torch
             # loads only for an env that hands out features)
-            from .encoder import (
-                FEATURE_DIM,
-                encoder_feature_stats,
-                feature_bounds,
-                standardize,
-                state_features,
-            )
+            from .encoder import FEATURE_DIM, encoder_feature_stats, standardize, state_features
 
             stats = encoder_feature_stats()
             self._features = standardize(state_features(self.kitchen), stats).numpy()
-            low, high = feature_bounds(stats)
-            parts["features"] = spaces.Box(low, high, (FEATURE_DIM,), np.float32)
-            parts["target_features"] = spaces.Box(low, high, (FEATURE_DIM,), np.float32)
+            # observations hand out rows of this table: read-only, so that one agent's in-place
+            # change cannot become another agent's observation
+            self._features.flags.writeable = False
+            # standardized ReLU features have no bounds of their own: -inf .. inf (readable, too)
+            low, high = np.full(FEATURE_DIM, -np.inf, np.float32), np.full(FEATURE_DIM, np.inf, np.float32)
+            parts["features"] = spaces.Box(-np.inf, np.inf, (FEATURE_DIM,), np.float32)
+            parts["target_features"] = spaces.Box(-np.inf, np.inf, (FEATURE_DIM,), np.float32)
         if observation == "box":
             # one float32 row per state: its features then its visible types; an observation is the
             # view's row then the target's
@@ -329,6 +337,21 @@ class NavigationEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None:
             self.np_random, _ = seeding.np_random(seed)
+        if options is not None and not isinstance(options, Mapping):
+            raise EnvError(f"options must be a dict, not {type(options).__name__}")
+        unknown = sorted(str(k) for k in (options or {}) if k != "episodes")
+        # A typo ("episode") must not silently give random episodes: a near miss of a known option is
+        # an error; any other key is a warning, not an error, because PettingZoo's own API test
+        # resets with an arbitrary option ({"options": 1}) and expects it to be taken
+        typos = [k for k in unknown if difflib.get_close_matches(k.lower(), RESET_OPTIONS, cutoff=0.6)]
+        if typos:
+            raise EnvError(f"unknown reset options {typos}; known: {', '.join(RESET_OPTIONS)}")
+        if unknown:
+            warnings.warn(
+                f"kgnavbench: reset ignores unknown options {unknown}; known: {', '.join(RESET_OPTIONS)}",
+                UnknownOptionWarning,
+                stacklevel=2,
+            )
         episodes = (options or {}).get("episodes")
         if episodes is not None:
             if len(episodes) > len(self.possible_agents):
@@ -354,7 +377,12 @@ class NavigationEnv(ParallelEnv):
         idx = np.arange(n)
         return self._observations(self._live_agents, idx), self._infos(self._live_agents, idx)
 
+    def _check_reset(self, what: str) -> None:
+        if not hasattr(self, "_live"):
+            raise EnvError(f"{what} before reset(): reset the env first")
+
     def step(self, actions: dict):
+        self._check_reset("step()")
         live, names = self._live, self._live_agents
         try:
             given = [actions[a] for a in names]
@@ -387,11 +415,13 @@ class NavigationEnv(ParallelEnv):
     def observation_arrays(self) -> BatchObservations:
         """The live agents' observations (env.agents order) as arrays with a leading agent axis, each
         gathered when first read (a policy that reads only the features never copies a view)."""
+        self._check_reset("observation_arrays()")
         return BatchObservations(self, np.array(self._live, np.int64))
 
     def info_arrays(self, privileged: bool = False) -> dict:
         """The live agents' infos as arrays (env.agents order); `state` and `expert_action` only when
         privileged."""
+        self._check_reset("info_arrays()")
         return self._info_arrays(np.array(self._live, np.int64), privileged)
 
     def step_arrays(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
@@ -400,6 +430,7 @@ class NavigationEnv(ParallelEnv):
         decides what a plugin sees); finished agents leave env.agents as in step(). Not with autoreset."""
         if self.autoreset:
             raise EnvError("step_arrays is for evaluation: not with autoreset=True")
+        self._check_reset("step_arrays()")
         act = np.asarray(actions)
         if act.shape != (len(self._live),) or not np.issubdtype(act.dtype, np.integer):
             raise EnvError(f"actions must be {len(self._live)} integers, got {act.dtype} {act.shape}")

@@ -57,7 +57,7 @@ from .losses import (
 from .models import N_ACTIONS
 from .runs import CHECKPOINT_FORMAT, Run, TrainError, TrainOptions, load_checkpoint, save_checkpoint
 from .tasks import load_task_file
-from .vecenv import CURRICULUM_REACH, NavigationVectorEnv, StateSpace, build_space
+from .vecenv import NavigationVectorEnv, StateSpace, build_space, curriculum_reach
 
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
 METRICS = (
@@ -171,7 +171,7 @@ class Trainer:
             assigned=None if assigned is None else assigned[mine],
             stop_ends=options.stop_ends_from == 0,
             max_steps=options.episode_cap,
-            autoreset=False,
+            autoreset_mode="disabled",
             observe=False,
         )
         self.envs.reset(seed=seed, options={"reach": self.reach()})
@@ -381,10 +381,7 @@ class Trainer:
 
     def reach(self) -> int | None:
         """The curriculum's farthest start (actions from the destination) at this frame; None: off or over."""
-        n = self.opts.start_curriculum * self.run.frames
-        if not n or self.frames >= n:
-            return None
-        return int(CURRICULUM_REACH * self.frames / n)
+        return curriculum_reach(self.frames, self.opts.start_curriculum * self.run.frames)
 
     def subtrajectories(self, windows: list) -> Sequences | None:
         """Up to tse_batch of the sub-target windows of the episodes that ended during a rollout,

@@ -63,7 +63,7 @@ from gymnasium import Env, spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .encoder import FEATURE_DIM, N_TYPES, encoder_feature_stats, feature_bounds, standardize, state_features
+from .encoder import FEATURE_DIM, N_TYPES, encoder_feature_stats, standardize, state_features
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, transition
 from .graph import VIEW_SIZE
 from .kitchens import KITCHEN_NAMES, check_name, object_types
@@ -347,51 +347,120 @@ def default_targets(kitchens: list[str]) -> str:
     return "seen" if set(kitchens) <= train else "all"
 
 
-def observation_space(views: bool = False, view_size: int = VIEW_SIZE) -> spaces.Dict:
-    """One navigator's observation space (the module docstring). The features' bounds are those of
-    the cached float16 ReLU features, 0 .. 65504, standardized."""
-    low, high = feature_bounds(encoder_feature_stats())
-    parts = {
-        "features": spaces.Box(low, high, (FEATURE_DIM,), np.float32),
-        "target_features": spaces.Box(low, high, (FEATURE_DIM,), np.float32),
-        "view_objects": spaces.Box(0, 1, (N_TYPES,), np.uint8),
-        "target_objects": spaces.Box(0, 1, (N_TYPES,), np.uint8),
-    }
+OBSERVATIONS = ("dict", "box")
+AUTORESET_MODES = {
+    "next_step": AutoresetMode.NEXT_STEP,
+    "same_step": AutoresetMode.SAME_STEP,
+    "disabled": AutoresetMode.DISABLED,
+}
+RENDER_FPS = 4  # frames per second of render()'s pictures (gymnasium's HumanRendering, videos)
+BOX_PARTS = ("features", "view_objects", "target_features", "target_objects")  # the flat Box's order
+
+
+def curriculum_reach(done: float, over: float) -> int | None:
+    """The start-distance curriculum: the farthest start (actions from the destination) after `done`
+    of its `over` frames, growing from 0 to CURRICULUM_REACH; None once it is over (or off, over = 0):
+    the training starts, 10-25 actions away. The trainer's (`start_curriculum`) and the envs'
+    (`curriculum_steps`)."""
+    if not over or done >= over:
+        return None
+    return int(CURRICULUM_REACH * done / over)
+
+
+def observation_space(
+    views: bool = False, view_size: int = VIEW_SIZE, observation: str = "dict"
+) -> spaces.Space:
+    """One navigator's observation space (the module docstring). The standardized features have no
+    bounds of their own (the encoder's ReLU features, standardized): -inf .. inf. observation="box":
+    one float32 vector, BOX_PARTS in that order (512 + 125 + 512 + 125 = 1274 numbers)."""
+    features = spaces.Box(-np.inf, np.inf, (FEATURE_DIM,), np.float32)
+    objects = spaces.Box(0, 1, (N_TYPES,), np.uint8)
+    if observation == "box":
+        half_low = np.concatenate([np.full(FEATURE_DIM, -np.inf), np.zeros(N_TYPES)]).astype(np.float32)
+        half_high = np.concatenate([np.full(FEATURE_DIM, np.inf), np.ones(N_TYPES)]).astype(np.float32)
+        return spaces.Box(np.concatenate([half_low, half_low]), np.concatenate([half_high, half_high]))
+    parts = {"features": features, "target_features": features, "view_objects": objects}
+    parts["target_objects"] = objects
     if views:
         parts["view"] = spaces.Box(0, 255, (view_size, view_size, 3), np.uint8)
         parts["target"] = spaces.Box(0, 255, (view_size, view_size, 3), np.uint8)
     return spaces.Dict(parts)
 
 
-class _Navigation:
-    """What both faces share: the space, the navigators, the observation gathers and the infos."""
+def _positive_int(value, name: str) -> int:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, (bool, np.bool_)) or value < 1:
+        raise VecEnvError(f"{name} must be a positive integer, not {value!r}")
+    return int(value)
 
-    def _setup(self, n, kitchens, targets, success_rule, stop_ends, max_steps, views) -> None:
+
+class _Navigation:
+    """What both faces share: the space, the navigators, the observation gathers, the infos, the
+    curriculum and the spec (`spec.max_episode_steps` is the env's max_steps)."""
+
+    _spec = None
+
+    @property
+    def spec(self):
+        """gymnasium's EnvSpec of a registered id (gym.make sets it), with max_episode_steps the env's
+        max_steps: the env truncates there itself, so no TimeLimit wrapper is needed (or added)."""
+        if self._spec is None:
+            return None
+        import dataclasses
+
+        return dataclasses.replace(self._spec, max_episode_steps=self.max_steps)
+
+    @spec.setter
+    def spec(self, value) -> None:
+        self._spec = value
+
+    def _setup(
+        self, n, kitchens, targets, success_rule, stop_ends, max_steps, views, observation="dict"
+    ) -> None:
         names = kitchens_of(kitchens)
         targets = default_targets(names) if targets is None else targets
         if targets not in TARGET_SETS:
             raise VecEnvError(f"unknown target set {targets!r}; choose one of {', '.join(TARGET_SETS)}")
         if success_rule not in SUCCESS_RULES:
             raise VecEnvError(f"unknown success_rule {success_rule!r}; choose one of {SUCCESS_RULES}")
+        if observation not in OBSERVATIONS:
+            raise VecEnvError(f"unknown observation {observation!r}; choose one of {OBSERVATIONS}")
+        if views and observation == "box":
+            raise VecEnvError("views=True needs observation='dict' (the flat Box holds no pixels)")
+        if not isinstance(stop_ends, (bool, np.bool_)):
+            raise VecEnvError(f"stop_ends must be True or False, not {stop_ends!r}")
         space = build_space(names, targets, success_rule, pixels=views)
-        self._use(Navigators(space, np.arange(n) % len(names), stop_ends=bool(stop_ends)), max_steps, views)
+        navigators = Navigators(space, np.arange(n) % len(names), stop_ends=bool(stop_ends))
+        self._use(navigators, max_steps, views, observation)
 
-    def _use(self, navigators: Navigators, max_steps, views: bool) -> None:
-        if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
-            raise VecEnvError(f"max_steps must be a positive integer, not {max_steps!r}")
+    def _use(self, navigators: Navigators, max_steps, views: bool, observation: str = "dict") -> None:
+        max_steps = _positive_int(max_steps, "max_steps")
         if views and navigators.space.views is None:
             raise VecEnvError("views=True needs a state space built with its views (pixels=True)")
         self.space, self.navigators = navigators.space, navigators
-        self.views = views
+        self.views, self.observation = views, observation
         self.max_steps = max_steps
+        self.curriculum_steps, self.curriculum_done = 0, 0
         # the learned agents' inputs as plain float32 rows, gathered per step into fresh arrays
         self._features = self.space.features_t.numpy()
         self._kitchen_names = np.array(self.space.kitchens, dtype=object)
         self._target_names = np.array(self.space.target_ids, dtype=object)
 
-    def _gather(self, idx=slice(None)) -> dict:
+    def _curriculum(self, steps) -> None:
+        if not isinstance(steps, (int, np.integer)) or isinstance(steps, (bool, np.bool_)) or steps < 0:
+            raise VecEnvError(f"curriculum_steps must be a whole number of steps >= 0, not {steps!r}")
+        self.curriculum_steps = int(steps)
+
+    def reach(self) -> int | None:
+        """The curriculum's farthest start now (None: no curriculum, or it is over)."""
+        return curriculum_reach(self.curriculum_done, self.curriculum_steps)
+
+    def _gather(self, idx=slice(None)) -> dict | np.ndarray:
         sp, nav = self.space, self.navigators
         state, goal = nav.state[idx], sp.destination[nav.target[idx]]
+        if self.observation == "box":
+            f, objects = self._features, sp.objects
+            parts = (f[state], objects[state], f[goal], objects[goal])
+            return np.concatenate(parts, axis=-1, dtype=np.float32)
         out = {
             "features": self._features[state],
             "target_features": self._features[goal],
@@ -413,14 +482,34 @@ class _Navigation:
             "episode_return": nav.episode_return[idx].copy(),
         }
 
+    def _picture(self, i: int) -> np.ndarray:
+        """Navigator i as render() shows it: its egocentric view and the target image (the view at the
+        destination) above the top-down map of its kitchen, with it and its target marked."""
+        import cv2
+
+        sp, nav = self.space, self.navigators
+        k = int(nav.kitchen[i])
+        graph = sp.tasks[k].graph
+        local = int(nav.state[i] - sp.offsets[k])
+        destination = int(sp.destination[nav.target[i]] - sp.offsets[k])
+        target = sp.tasks[k].target(sp.target_ids[nav.target[i]])
+        top = top_down_map(graph.world, 400, [graph.pose(local)], None, [target.object_index])
+        views = [np.asarray(graph.views[s]) for s in (local, destination)]
+        views = [cv2.resize(v, (200, 200), interpolation=cv2.INTER_NEAREST) for v in views]
+        for v, label in zip(views, ("view", "target"), strict=True):
+            cv2.putText(v, label, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
+        return np.ascontiguousarray(np.concatenate([np.concatenate(views, axis=1), top], axis=0))
+
 
 class NavigationVectorEnv(_Navigation, VectorEnv):
     """num_envs navigators over `kitchens` (a split, a kitchen or a list), sub-env i in kitchen i mod K,
-    stepped at once; gymnasium's VectorEnv with same-step autoreset, or none (`autoreset=False`:
-    gymnasium's DISABLED mode, the caller resets the finished sub-envs with
-    `reset(options={"reset_mask": mask})`). See the module docstring."""
+    stepped at once; gymnasium's VectorEnv. See the module docstring for the keywords."""
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+    metadata = {
+        "autoreset_mode": AutoresetMode.NEXT_STEP,
+        "render_modes": ["rgb_array"],
+        "render_fps": RENDER_FPS,
+    }
     _observe = True  # reset and step gather the observations (`over(..., observe=False)`: they don't)
 
     def __init__(
@@ -432,12 +521,19 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
         stop_ends: bool = True,
         max_steps: int = TRAINING_MAX_STEPS,
         views: bool = False,
-        autoreset: bool = True,
+        autoreset_mode: str | AutoresetMode = "next_step",
+        curriculum_steps: int = 0,
+        observation: str = "dict",
+        render_mode: str | None = None,
     ):
-        if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
-            raise VecEnvError(f"num_envs must be a positive integer, not {num_envs!r}")
-        self._setup(num_envs, kitchens, targets, success_rule, stop_ends, max_steps, views)
-        self._spaces(autoreset)
+        num_envs = _positive_int(num_envs, "num_envs")
+        if render_mode not in (None, "rgb_array"):
+            raise VecEnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
+        self.render_mode = render_mode
+        mode = _autoreset_mode(autoreset_mode)
+        self._setup(num_envs, kitchens, targets, success_rule, stop_ends, max_steps, views, observation)
+        self._curriculum(curriculum_steps)
+        self._spaces(mode)
 
     @classmethod
     def over(
@@ -447,7 +543,7 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
         assigned: np.ndarray | None = None,
         stop_ends: bool = True,
         max_steps: int = TRAINING_MAX_STEPS,
-        autoreset: bool = True,
+        autoreset_mode: str | AutoresetMode = "next_step",
         observe: bool = True,
     ) -> NavigationVectorEnv:
         """The vector env over a state space already built (`build_space`), sub-env i in the space's
@@ -456,22 +552,25 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
         step return None for the observations (the trainer reads the states; gathering the feature
         rows it never uses cost about 5% of an update)."""
         env = cls.__new__(cls)
+        env.render_mode = None
+        mode = _autoreset_mode(autoreset_mode)
         env._use(Navigators(space, kitchen, stop_ends=bool(stop_ends), assigned=assigned), max_steps, False)
-        env._spaces(autoreset)
+        env._spaces(mode)
         env._observe = bool(observe)
         return env
 
-    def _spaces(self, autoreset: bool) -> None:
+    def _spaces(self, mode: AutoresetMode) -> None:
         self.num_envs = n = self.navigators.n
-        self.autoreset = bool(autoreset)
-        mode = AutoresetMode.SAME_STEP if self.autoreset else AutoresetMode.DISABLED
+        self.autoreset_mode = mode
         self.metadata = {**type(self).metadata, "autoreset_mode": mode}
-        self.single_observation_space = observation_space(self.views)
+        self.single_observation_space = observation_space(self.views, observation=self.observation)
         self.single_action_space = spaces.Discrete(len(ACTIONS))
         self.observation_space = batch_space(self.single_observation_space, n)
         self.action_space = batch_space(self.single_action_space, n)
         self._all = np.arange(n)
-        self._ended = np.zeros(n, bool)  # without autoreset: finished, waiting for a reset
+        self._ended = np.zeros(n, bool)  # DISABLED: finished, waiting for a reset
+        self._pending = np.zeros(n, bool)  # NEXT_STEP: finished; the next step starts its next episode
+        self._reset_once = False
 
     @property
     def stop_ends(self) -> bool:
@@ -484,25 +583,32 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """New episodes for every sub-env, or (options["reset_mask"], a bool per sub-env) for those only;
-        options["reach"]: starts at most that many actions from the destination (a curriculum)."""
+        options["reach"]: starts at most that many actions from the destination (else the curriculum's,
+        with curriculum_steps)."""
         if seed is not None:
             self.np_random = np.random.default_rng(seed)
             self.single_action_space.seed(seed)
             self.action_space.seed(seed)
+        if options is not None and not isinstance(options, dict):
+            raise VecEnvError(f"options must be a dict, not {type(options).__name__}")
         options = dict(options or {})
         mask, reach = options.pop("reset_mask", None), options.pop("reach", None)
         if options:
-            raise VecEnvError(f"unknown reset options {sorted(options)}; known: reset_mask, reach")
+            raise VecEnvError(f"unknown reset options {sorted(map(str, options))}; known: reset_mask, reach")
         idx = self._all
         if mask is not None:
             mask = np.asarray(mask)
             if mask.shape != (self.num_envs,) or mask.dtype != bool:
                 raise VecEnvError(f"reset_mask must be {self.num_envs} bools, got {mask.dtype} {mask.shape}")
             idx = np.flatnonzero(mask)
-        if reach is not None and (not isinstance(reach, (int, np.integer)) or reach < 0):
+        if reach is not None and (
+            not isinstance(reach, (int, np.integer)) or isinstance(reach, (bool, np.bool_)) or reach < 0
+        ):
             raise VecEnvError(f"reach must be a whole number of actions >= 0, not {reach!r}")
-        self.navigators.draw(idx, self.np_random, self.max_steps, None if reach is None else int(reach))
-        self._ended[idx] = False
+        reach = self.reach() if reach is None else int(reach)
+        self.navigators.draw(idx, self.np_random, self.max_steps, reach)
+        self._ended[idx] = self._pending[idx] = False
+        self._reset_once = True
         return self._gather() if self._observe else None, self._infos()
 
     def step(self, actions):
@@ -513,39 +619,66 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
             )
         if actions.min() < 0 or actions.max() >= len(ACTIONS):
             raise VecEnvError(f"actions must lie in 0..{len(ACTIONS) - 1}")
+        if not self._reset_once:
+            raise VecEnvError("step() before reset(): reset the env first")
         if self._ended.any():
             raise VecEnvError(
                 f"sub-envs {np.flatnonzero(self._ended).tolist()[:10]} finished their episodes: without "
                 "autoreset, reset them first (reset(options={'reset_mask': mask}))"
             )
-        rewards, terminated, truncated = self.navigators.step(actions.astype(np.int64))
+        n = self.num_envs
+        rewards, terminated, truncated = np.zeros(n), np.zeros(n, bool), np.zeros(n, bool)
+        restarting = np.flatnonzero(self._pending)  # NEXT_STEP: their action is ignored; a new episode
+        if len(restarting):
+            self.navigators.draw(restarting, self.np_random, self.max_steps, self.reach())
+            self._pending[restarting] = False
+            going = np.flatnonzero(~np.isin(self._all, restarting))
+            r, term, trunc = self.navigators.step(actions[going].astype(np.int64), going)
+            rewards[going], terminated[going], truncated[going] = r, term, trunc
+        else:
+            going = self._all
+            rewards, terminated, truncated = self.navigators.step(actions.astype(np.int64))
+        self.curriculum_done += len(going)
         done = np.flatnonzero(terminated | truncated)
         infos = self._infos()
+        # every step has final_info (masks all False where nothing ended): no KeyError in a loop
+        mask = np.zeros(n, bool)
+        mask[done] = True
+        final_info = {}
+        for key, value in self._episode_info(done).items():
+            column = np.zeros(n, value.dtype)
+            column[done] = value
+            final_info[key], final_info[f"_{key}"] = column, mask.copy()
+        infos.update(final_info=final_info, _final_info=mask)
         if len(done):
-            mask = np.zeros(self.num_envs, bool)
-            mask[done] = True
-            final_info = {}
-            for key, value in self._episode_info(done).items():
-                column = np.zeros(self.num_envs, value.dtype)
-                column[done] = value
-                final_info[key], final_info[f"_{key}"] = column, mask.copy()
-            infos.update(final_info=final_info, _final_info=mask)
-            if self.autoreset:
+            if self.autoreset_mode == AutoresetMode.SAME_STEP:
                 last = self._gather(done)
-                final_obs = np.full(self.num_envs, None, dtype=object)
+                final_obs = np.full(n, None, dtype=object)
                 for j, i in enumerate(done.tolist()):
-                    final_obs[i] = {key: value[j] for key, value in last.items()}
+                    final_obs[i] = (
+                        last[j] if self.observation == "box" else {k: v[j] for k, v in last.items()}
+                    )
                 infos.update(final_obs=final_obs, _final_obs=mask.copy())
-                self.navigators.draw(done, self.np_random, self.max_steps)
+                self.navigators.draw(done, self.np_random, self.max_steps, self.reach())
+            elif self.autoreset_mode == AutoresetMode.NEXT_STEP:
+                self._pending[done] = True
             else:
                 self._ended[done] = True
         return (
             self._gather() if self._observe else None,
-            rewards.astype(np.float64),
-            terminated.copy(),
-            truncated.copy(),
+            np.asarray(rewards, np.float64),
+            np.asarray(terminated, bool).copy(),
+            np.asarray(truncated, bool).copy(),
             infos,
         )
+
+    def render(self):
+        """rgb_array: the first sub-env (its view and target image above its kitchen's map)."""
+        if self.render_mode is None:
+            return None
+        if not self._reset_once:
+            raise VecEnvError("render() before reset()")
+        return self._picture(0)
 
     def _infos(self) -> dict:
         nav = self.navigators
@@ -558,12 +691,24 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
         }
 
 
+def _autoreset_mode(mode) -> AutoresetMode:
+    if isinstance(mode, AutoresetMode):
+        return mode
+    if isinstance(mode, str) and mode.lower() in AUTORESET_MODES:
+        return AUTORESET_MODES[mode.lower()]
+    raise VecEnvError(f"unknown autoreset_mode {mode!r}; choose one of {', '.join(AUTORESET_MODES)}")
+
+
+GYM_RESET_OPTIONS = ("target", "start", "max_steps", "reach")
+
+
 class NavigationGymEnv(_Navigation, Env):
     """One navigator in `kitchens` (a kitchen, a split or a list; the kitchen drawn per episode), as a
     gymnasium.Env (module docstring). reset(options={"target": id, "start": state}) starts a given
-    episode instead (state: the kitchen's local state index, as in the task file's fixed episodes)."""
+    episode instead (state: the kitchen's local state index, as in the task file's fixed episodes),
+    with options["max_steps"] its cap; options["reach"]: a drawn start at most that far."""
 
-    metadata = {"render_modes": ["rgb_array"]}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
 
     def __init__(
         self,
@@ -574,29 +719,52 @@ class NavigationGymEnv(_Navigation, Env):
         max_steps: int = TRAINING_MAX_STEPS,
         views: bool = False,
         render_mode: str | None = None,
+        curriculum_steps: int = 0,
+        observation: str = "dict",
     ):
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise VecEnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
         self.render_mode = render_mode
-        self._setup(1, kitchens, targets, success_rule, stop_ends, max_steps, views)
-        self.observation_space = observation_space(views)
+        self._setup(1, kitchens, targets, success_rule, stop_ends, max_steps, views, observation)
+        self._curriculum(curriculum_steps)
+        self.observation_space = observation_space(views, observation=observation)
         self.action_space = spaces.Discrete(len(ACTIONS))
         self._rows = {
             (self.space.kitchens[k], t): r
             for r, (k, t) in enumerate(zip(self.space.target_kitchen.tolist(), self.space.target_ids))
         }
+        self._reset_once = False
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
+        if options is not None and not isinstance(options, dict):
+            raise VecEnvError(f"options must be a dict, not {type(options).__name__}")
+        options = dict(options or {})
+        unknown = sorted(str(k) for k in options if k not in GYM_RESET_OPTIONS)
+        if unknown:
+            raise VecEnvError(f"unknown reset options {unknown}; known: {', '.join(GYM_RESET_OPTIONS)}")
+        cap = _positive_int(options["max_steps"], "max_steps") if "max_steps" in options else self.max_steps
         nav, sp = self.navigators, self.space
-        if options and "target" in options:
-            self._begin(options)
+        if "target" in options:
+            if "reach" in options:
+                raise VecEnvError("reach draws a start; with target and start the episode is given")
+            self._begin(options, cap)
         else:
+            if "start" in options:
+                raise VecEnvError("start needs its target: reset(options={'target': id, 'start': state})")
+            reach = options.get("reach")
+            if reach is not None and (
+                not isinstance(reach, (int, np.integer)) or isinstance(reach, (bool, np.bool_)) or reach < 0
+            ):
+                raise VecEnvError(f"reach must be a whole number of actions >= 0, not {reach!r}")
             nav.kitchen[0] = self.np_random.integers(len(sp.kitchens))
-            nav.draw(np.zeros(1, np.int64), self.np_random, self.max_steps)
+            nav.draw(
+                np.zeros(1, np.int64), self.np_random, cap, self.reach() if reach is None else int(reach)
+            )
+        self._reset_once = True
         return self._single(self._gather()), self._info()
 
-    def _begin(self, options: dict) -> None:
+    def _begin(self, options: dict, cap: int) -> None:
         sp = self.space
         matches = [r for (k, t), r in self._rows.items() if t == options["target"]]
         if not matches:
@@ -605,7 +773,11 @@ class NavigationGymEnv(_Navigation, Env):
         k = int(sp.target_kitchen[row])
         local = options.get("start")
         n_local = int(sp.offsets[k + 1] - sp.offsets[k])
-        if not isinstance(local, (int, np.integer)) or not 0 <= local < n_local:
+        if (
+            not isinstance(local, (int, np.integer))
+            or isinstance(local, (bool, np.bool_))
+            or not 0 <= local < n_local
+        ):
             raise VecEnvError(
                 f"start must be a state index of {sp.kitchens[k]} (0..{n_local - 1}), not {local!r}"
             )
@@ -613,31 +785,32 @@ class NavigationGymEnv(_Navigation, Env):
         if sp.dist[row, start] < 0:
             raise VecEnvError(f"the target {options['target']!r} cannot be reached from state {local}")
         self.navigators.kitchen[0] = k
-        cap = int(options.get("max_steps", self.max_steps))
         self.navigators.begin(np.zeros(1, np.int64), np.array([row]), np.array([start]), cap)
 
     def step(self, action):
         if not self.action_space.contains(action):
             raise VecEnvError(f"action must be an integer in 0..{len(ACTIONS) - 1}, not {action!r}")
+        if not self._reset_once:
+            raise VecEnvError("step() before reset(): reset the env first")
         rewards, terminated, truncated = self.navigators.step(np.array([int(action)], np.int64))
+        self.curriculum_done += 1
         info = self._info()
         if terminated[0] or truncated[0]:
             info.update({k: v[0].item() for k, v in self._episode_info(slice(0, 1)).items()})
         return self._single(self._gather()), float(rewards[0]), bool(terminated[0]), bool(truncated[0]), info
 
     def render(self):
-        """rgb_array: the top-down map of the navigator's kitchen, the navigator and its target."""
+        """rgb_array: the navigator's egocentric view and the target image above the top-down map of
+        its kitchen, with the navigator and its target marked."""
         if self.render_mode is None:
             return None
-        sp, nav = self.space, self.navigators
-        k = int(nav.kitchen[0])
-        graph = sp.tasks[k].graph
-        pose = graph.pose(int(nav.state[0] - sp.offsets[k]))
-        target = sp.tasks[k].target(sp.target_ids[nav.target[0]])
-        return top_down_map(graph.world, 400, [pose], None, [target.object_index])
+        if not self._reset_once:
+            raise VecEnvError("render() before reset()")
+        return self._picture(0)
 
-    @staticmethod
-    def _single(batch: dict) -> dict:
+    def _single(self, batch):
+        if self.observation == "box":
+            return batch[0]
         return {key: value[0] for key, value in batch.items()}
 
     def _info(self) -> dict:

@@ -66,6 +66,7 @@ def test_autoreset_keeps_every_navigator_and_starts_its_next_episode_in_place(fl
 
 
 # (not autoreset: PettingZoo's API has a finished agent leave, which autoreset is there to avoid)
+@pytest.mark.filterwarnings("ignore::kgnavbench.env.UnknownOptionWarning")  # its {"options": 1}
 @pytest.mark.parametrize("options", [{"observation": "box"}, {"features": True}])
 def test_the_new_options_pass_pettingzoos_api_test(floorplan1_tasks, options):
     parallel_api_test(parallel_env(kitchen="FloorPlan1", n_agents=3, max_steps=40, **options), num_cycles=60)

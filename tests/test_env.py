@@ -12,6 +12,7 @@ from kgnavbench.env import (
     SUCCESS_REWARD,
     EnvError,
     NavigationEnv,
+    UnknownOptionWarning,
     parallel_env,
 )
 from kgnavbench.graph import OPEN, STOP
@@ -84,6 +85,8 @@ def test_constructor_and_spaces(make_env, tasks):
 def test_pettingzoo_parallel_api(make_env):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # PettingZoo reports API slips as warnings
+        # (but its test resets with options={"options": 1}, which kgnavbench names in a warning)
+        warnings.simplefilter("ignore", UnknownOptionWarning)
         parallel_api_test(make_env(n_agents=3, max_steps=60), num_cycles=200)
 
 
@@ -91,6 +94,7 @@ def test_pettingzoo_parallel_api_with_truncation(make_env):
     # stop_ends=False: random Stops rarely end an episode, so agents live until max_steps
     with warnings.catch_warnings():
         warnings.simplefilter("error")
+        warnings.simplefilter("ignore", UnknownOptionWarning)
         parallel_api_test(make_env(n_agents=2, stop_ends=False, max_steps=150), num_cycles=200)
 
 
@@ -544,6 +548,9 @@ def test_training_targets_from_a_list(make_env):
         ({"n_agents": 0}, "n_agents must be a positive integer"),
         ({"n_agents": 2.0}, "n_agents must be a positive integer"),
         ({"max_steps": 0}, "max_steps must be a positive integer"),
+        ({"max_steps": -5}, "max_steps must be a positive integer"),
+        ({"max_steps": 2.7}, "max_steps must be a positive integer"),
+        ({"max_steps": True}, "max_steps must be a positive integer"),
     ],
 )
 def test_bad_options_are_reported(make_env, kwargs, message):
@@ -560,6 +567,9 @@ def test_bad_options_are_reported(make_env, kwargs, message):
         ({"target": APPLE, "start": -1}, "out of range"),
         ({"target": APPLE, "start": 10**6}, "out of range"),
         ({"target": APPLE, "start": 0, "max_steps": 0}, "out of range"),
+        ({"target": APPLE, "start": 0, "max_steps": -5}, "out of range"),
+        ({"target": APPLE, "start": 0, "max_steps": 2.7}, "must be integers"),
+        ({"target": APPLE, "start": 0, "max_steps": True}, "must be integers"),
         ({"target": APPLE, "start": "nowhere"}, "bad episode"),
         ({"target": APPLE, "start": None}, "bad episode"),
         ("not a dict", "bad episode"),
@@ -570,6 +580,32 @@ def test_bad_episodes_are_reported(make_env, bad, message):
     with pytest.raises(EnvError, match=message) as info:
         env.reset(options={"episodes": [bad]})
     assert "bad episode" in str(info.value)
+
+
+def test_unknown_reset_options_and_a_step_before_reset_are_refused(make_env, tasks):
+    """A typo ("episode" for "episodes") is an error, not a random episode; stepping or reading the
+    arrays before reset() is one line, not an AttributeError."""
+    env = make_env()
+    for typo in ("episode", "Episodes", "episdoes"):
+        with pytest.raises(EnvError, match=rf"unknown reset options \['{typo}'\]; known: episodes"):
+            env.reset(options={typo: [{"target": APPLE, "start": 0}]})
+    # any other key: a warning naming it (PettingZoo's API test resets with {"options": 1})
+    with pytest.warns(UnknownOptionWarning, match=r"ignores unknown options \['colour'\]"):
+        env.reset(options={"colour": "red"})
+    env = make_env()
+    for call in (lambda: env.step({"navigator_0": 0}), env.observation_arrays, lambda: env.step_arrays([0])):
+        with pytest.raises(EnvError, match="before reset"):
+            call()
+
+
+def test_observations_are_read_only_so_agents_cannot_change_each_others(make_env):
+    """The dict observations' arrays are views of tables the agents share: read-only, so an in-place
+    write is an error rather than another agent's observation changed for the rest of the episode."""
+    env = make_env(n_agents=2, features=True)
+    observations, _ = env.reset(seed=0)
+    for key in ("features", "target_features", "view", "target", "view_objects", "target_objects"):
+        with pytest.raises(ValueError, match="read-only"):
+            observations["navigator_0"][key][...] = 0
 
 
 def test_unreachable_start_is_reported(make_env, tasks):

@@ -4,6 +4,7 @@ arrays, nothing privileged, errors)."""
 
 from __future__ import annotations
 
+import cv2
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -149,34 +150,173 @@ def test_single_env_plays_a_fixed_episode_to_success(floorplan1_tasks):
         env.step(12)
 
 
-def test_make_vec_gives_the_batched_env_with_same_step_autoreset(floorplan1_tasks):
-    envs = gym.make_vec("kgnavbench/FloorPlan1-v0", num_envs=16)
+@pytest.mark.parametrize("mode", ["next_step", "same_step"])
+def test_make_vec_gives_the_batched_env_in_either_autoreset_mode(floorplan1_tasks, mode):
+    """gymnasium's NEXT_STEP (the default, what its vector wrappers expect): the step that ends an
+    episode returns its last observation; the next step starts the next episode, ignoring the action,
+    with reward 0. SAME_STEP: the ending step returns the next episode's first observation and the last
+    one in final_obs. Either way final_info (on every step, masks False where nothing ended) holds the
+    ended episodes' success and lengths."""
+    from gymnasium.vector import AutoresetMode
+
+    envs = gym.make_vec("kgnavbench/FloorPlan1-v0", num_envs=16, autoreset_mode=mode)
     assert isinstance(envs.unwrapped, vecenv.NavigationVectorEnv) and envs.num_envs == 16
+    assert envs.metadata["autoreset_mode"] == AutoresetMode[mode.upper()]
+    assert envs.spec.max_episode_steps == vecenv.TRAINING_MAX_STEPS
     observations, infos = envs.reset(seed=0)
     assert envs.observation_space.contains(observations)
     assert observations["features"].shape == (16, 512) and observations["features"].dtype == np.float32
     assert list(infos["kitchen"]) == ["FloorPlan1"] * 16
     rng = np.random.default_rng(0)
-    finished = successes = 0
+    finished = successes = restarted = 0
+    ended = np.zeros(16, bool)
     for _ in range(300):
         previous = {k: v.copy() for k, v in observations.items()}
+        steps_before = envs.unwrapped.navigators.steps.copy()
         actions = np.where(rng.random(16) < 0.05, STOP, rng.integers(0, STOP, 16))
         returned = observations
         observations, rewards, terminations, truncations, infos = envs.step(actions)
         assert all(np.array_equal(previous[k], returned[k]) for k in previous)  # fresh arrays
         assert rewards.shape == (16,) and terminations.dtype == bool
         done = terminations | truncations
+        stepped = ~done if mode == "same_step" else ~ended  # (same step: the ended ones start again)
+        assert (envs.unwrapped.navigators.steps == steps_before + 1)[stepped].all()
+        if mode == "next_step" and ended.any():  # last step's ended ones: a new episode, action ignored
+            assert (rewards[ended] == 0).all() and not done[ended].any()
+            assert (envs.unwrapped.navigators.steps[ended] == 0).all()
+            restarted += int(ended.sum())
+        assert (infos["_final_info"] == done).all()
         if done.any():
-            assert (infos["_final_obs"] == done).all() and (infos["_final_info"] == done).all()
-            for i in np.flatnonzero(done):
-                assert envs.single_observation_space.contains(infos["final_obs"][i])
+            if mode == "same_step":
+                assert (infos["_final_obs"] == done).all()
+                for i in np.flatnonzero(done):
+                    assert envs.single_observation_space.contains(infos["final_obs"][i])
+            else:
+                assert "final_obs" not in infos
             final = infos["final_info"]
             assert (final["episode_length"][done] >= 1).all()
             assert (final["success"][done] == (rewards[done] > 5)).all()
             finished += int(done.sum())
             successes += int(final["success"][done].sum())
+        ended = done
         assert "state" not in infos and "expert_action" not in infos
-    assert finished > 16
+    assert finished > 16 and (restarted > 16 or mode == "same_step")
+
+
+def test_gymnasiums_vector_wrappers_and_sync_vectorization_take_the_envs(floorplan1_tasks):
+    """The NEXT_STEP vector env under gymnasium's own vector wrappers (normalising observations and
+    rewards, episode statistics), and make_vec's sync mode with a wrapper on each single env."""
+    from gymnasium.wrappers.vector import NormalizeObservation, NormalizeReward, RecordEpisodeStatistics
+
+    envs = gym.make_vec("kgnavbench/FloorPlan1-v0", num_envs=4, observation="box", max_steps=20)
+    envs = RecordEpisodeStatistics(NormalizeReward(NormalizeObservation(envs)))
+    envs.reset(seed=0)
+    seen_episode = False
+    for _ in range(45):
+        observations, _, _, _, infos = envs.step(envs.action_space.sample())
+        assert observations.shape == (4, 1274) and np.isfinite(observations).all()
+        seen_episode |= "episode" in infos
+    assert seen_episode
+    synced = gym.make_vec(
+        "kgnavbench/FloorPlan1-v0",
+        num_envs=2,
+        vectorization_mode="sync",
+        wrappers=[gym.wrappers.FlattenObservation],
+        max_steps=10,
+    )
+    observations, _ = synced.reset(seed=0)
+    assert observations.shape == (2, 2 * 512 + 2 * 125)
+
+
+def test_the_envs_take_the_training_protocol_as_keywords(floorplan1_tasks):
+    """stop_ends, max_steps (spec.max_episode_steps) and curriculum_steps on the single and vector
+    envs: the curriculum's reach grows from 0 to 25 over the env's first N steps, as the trainer's;
+    unknown keywords, reset options and bad values are refused with one line."""
+    env = gym.make("kgnavbench/FloorPlan1-v0", stop_ends=False, max_steps=200, curriculum_steps=1000)
+    assert env.spec.max_episode_steps == 200 and env.unwrapped.max_steps == 200
+    env.reset(seed=0)
+    dist = env.unwrapped.space.dist
+    nav = env.unwrapped.navigators
+    assert env.unwrapped.reach() == 0 and dist[nav.target[0], nav.state[0]] <= 1
+    _, reward, terminated, _, _ = env.step(STOP)  # a Stop that does not succeed: a no-op
+    assert not terminated or reward > 5
+    for _ in range(499):
+        env.step(0)
+    assert env.unwrapped.reach() == 12  # 25 * 500 / 1000
+    for _ in range(500):
+        env.step(0)
+    assert env.unwrapped.reach() is None  # over: the training starts, 10-25 actions away
+    env.reset()
+    assert dist[nav.target[0], nav.state[0]] >= 10
+    # gym.make(id, max_episode_steps=N): gymnasium's TimeLimit truncates there
+    short = gym.make("kgnavbench/FloorPlan1-v0", max_episode_steps=7)
+    assert short.spec.max_episode_steps == 7
+    short.reset(seed=0)
+    for i in range(7):
+        _, _, terminated, truncated, _ = short.step(6 if i % 2 else 7)  # LookUp, LookDown
+    assert truncated and not terminated
+    # the vector env: the curriculum counts every sub-env's steps (frames, as the trainer's)
+    envs = vecenv.NavigationVectorEnv(num_envs=10, kitchens="FloorPlan1", curriculum_steps=100, max_steps=50)
+    envs.reset(seed=0)
+    assert envs.reach() == 0
+    for _ in range(5):
+        envs.step(np.zeros(10, np.int64))
+    assert envs.reach() == 12
+    # refused, each in one line
+    with pytest.raises(TypeError, match="nope"):
+        gym.make("kgnavbench/FloorPlan1-v0", nope=1)
+    for bad in (0, -5, 2.7, True, "10"):
+        with pytest.raises(vecenv.VecEnvError, match="max_steps must be a positive integer"):
+            vecenv.NavigationGymEnv("FloorPlan1", max_steps=bad)
+        with pytest.raises(vecenv.VecEnvError, match="max_steps must be a positive integer"):
+            env.reset(options={"target": env.unwrapped.space.target_ids[0], "start": 0, "max_steps": bad})
+    with pytest.raises(vecenv.VecEnvError, match=r"unknown reset options \['episode'\]"):
+        env.reset(options={"episode": 3})
+    with pytest.raises(vecenv.VecEnvError, match="curriculum_steps"):
+        vecenv.NavigationVectorEnv(num_envs=2, kitchens="FloorPlan1", curriculum_steps=-1)
+    with pytest.raises(vecenv.VecEnvError, match="autoreset_mode"):
+        vecenv.NavigationVectorEnv(num_envs=2, kitchens="FloorPlan1", autoreset_mode="sometimes")
+    with pytest.raises(vecenv.VecEnvError, match="stop_ends must be True or False"):
+        vecenv.NavigationGymEnv("FloorPlan1", stop_ends="no")
+    with pytest.raises(vecenv.VecEnvError, match="step\\(\\) before reset"):
+        vecenv.NavigationGymEnv("FloorPlan1").step(0)
+    with pytest.raises(vecenv.VecEnvError, match="step\\(\\) before reset"):
+        vecenv.NavigationVectorEnv(num_envs=2, kitchens="FloorPlan1").step(np.zeros(2, np.int64))
+
+
+def test_the_flat_box_observation_and_readable_bounds(floorplan1_tasks):
+    """observation="box": one float32 vector, BOX_PARTS in order (features, view_objects,
+    target_features, target_objects), the dict's numbers; the features' bounds are -inf..inf, so
+    printing the space prints a line, not a thousand numbers."""
+    env = vecenv.NavigationGymEnv("FloorPlan1", observation="box")
+    plain = vecenv.NavigationGymEnv("FloorPlan1")
+    box, _ = env.reset(seed=3)
+    d, _ = plain.reset(seed=3)
+    assert box.shape == (1274,) and box.dtype == np.float32 and env.observation_space.contains(box)
+    expected = np.concatenate([d[k].astype(np.float32) for k in vecenv.BOX_PARTS])
+    assert np.array_equal(box, expected)
+    assert len(str(plain.observation_space)) < 400, str(plain.observation_space)
+    assert "inf" in str(plain.observation_space["features"])
+
+
+def test_render_shows_the_view_and_target_beside_the_map(floorplan1_tasks):
+    """render(): the egocentric view and the target image above the top-down map, at render_fps;
+    the vector env renders its first sub-env."""
+    env = gym.make("kgnavbench/FloorPlan1-v0", render_mode="rgb_array")
+    assert env.metadata["render_fps"] > 0
+    env.reset(seed=0)
+    picture = env.render()
+    nav = env.unwrapped.navigators
+    view = np.asarray(floorplan1_tasks.graph.views[int(nav.state[0])])
+    assert picture.ndim == 3 and picture.shape[2] == 3 and picture.dtype == np.uint8
+    assert picture.shape[1] == 400 and picture.shape[0] == 600  # two 200-pixel views above the 400 map
+    corner = picture[150:200, 150:200]  # below the label, inside the view: the view, scaled
+    scaled = cv2.resize(view, (200, 200), interpolation=cv2.INTER_NEAREST)[150:200, 150:200]
+    assert np.array_equal(corner, scaled)
+    envs = vecenv.NavigationVectorEnv(num_envs=3, kitchens="FloorPlan1", render_mode="rgb_array")
+    envs.reset(seed=0)
+    assert envs.render().shape == (600, 400, 3) and envs.metadata["render_fps"] > 0
+    assert vecenv.NavigationVectorEnv(num_envs=1, kitchens="FloorPlan1").render() is None
 
 
 def test_vector_env_without_autoreset_waits_for_reset_mask(floorplan1_tasks):
@@ -185,12 +325,14 @@ def test_vector_env_without_autoreset_waits_for_reset_mask(floorplan1_tasks):
     only they get new episodes; `reach` draws curriculum starts."""
     from gymnasium.vector import AutoresetMode
 
-    envs = vecenv.NavigationVectorEnv(num_envs=4, kitchens="FloorPlan1", autoreset=False, max_steps=3)
+    envs = vecenv.NavigationVectorEnv(
+        num_envs=4, kitchens="FloorPlan1", autoreset_mode="disabled", max_steps=3
+    )
     assert envs.metadata["autoreset_mode"] == AutoresetMode.DISABLED
     envs.reset(seed=0)
     for _ in range(2):
         _, _, terminated, truncated, infos = envs.step(np.full(4, STOP - 1, np.int64))  # LookDown
-        assert "final_info" not in infos
+        assert not infos["_final_info"].any()
     observations, _, terminated, truncated, infos = envs.step(np.full(4, STOP - 1, np.int64))
     assert truncated.all() and "final_obs" not in infos and (infos["final_info"]["episode_length"] == 3).all()
     before = envs.navigators.state.copy()
