@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml
 ## for any number). Killed and re-run, it continues.
 ## The vector code paths of MKL (products) and ATen (the rest) pinned to AVX2, the development
 ## machine's: the floats of a run depend on them, and an AVX-512 CPU would otherwise take others
-## (NUMERICS= to let each library pick the fastest; see README "Reproducibility").
+## (NUMERICS= to let each library pick the fastest; see docs/reproducibility.md).
 PRESET ?= quick
 WORKERS ?= $(shell nproc 2>/dev/null || echo 1)
 NUMERICS ?= MKL_CBWR=AVX2 ATEN_CPU_CAPABILITY=avx2

@@ -26,7 +26,7 @@ class Config(TrainOptions):
     il: bool = True  # the paper's KG rows build on +IL+TSE
     tse: bool = True
     attention: bool = True  # false: the +KG row (mean over the visible objects)
-    # the softmax over "visible" (R_z nodes, masked; chosen on validation, README "Table I") or "all"
+    # the softmax over "visible" (R_z nodes, masked; chosen on validation, docs/table1.md) or "all"
     # (every node, the paper's wording)
     attention_nodes: str = "visible"
     kg_graph: str = "accumulated"  # or "per_step"

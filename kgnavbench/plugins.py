@@ -23,11 +23,11 @@ and the policy it returns has two methods:
 
 `observations` and `infos` are exactly what `kgnavbench.env` returns for the live agents, made with
 features=True (so observations carry the encoder's `features` and `target_features`), infos without
-"state" and "expert_action" unless PRIVILEGED. The README has a worked example; `baselines/random_walk.py`
+"state" and "expert_action" unless PRIVILEGED. README.md has a worked example; `baselines/random_walk.py`
 is the one to copy.
 
 A policy may also have the batched form, which evaluation then uses instead of act (the learned
-policies do: no per-agent dicts; 1.4-1.5x faster for them, README "Speed"):
+policies do: no per-agent dicts; 1.4-1.5x faster for them, docs/speed.md):
 
     act_batch(agents: list[str], observations, infos) -> np.ndarray   # one action per agent, in order
 

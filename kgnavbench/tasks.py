@@ -8,7 +8,7 @@ Targets (per kitchen, AI2-THOR start scene):
 Goal states of a target are the states where it is visible; its destination is the goal state nearest
 the object (ties: more pixels, then the lowest state index), and its target image is the view there.
 
-Splits (rules in code here, written down in the README):
+Splits (rules in code here, written down in docs/protocol.md):
   * kitchens: the 20 with the most actionable targets train (ties: the lower FloorPlan number); the
     other ten, in the same order, alternate validation and test;
   * targets: a training kitchen has SEEN_TARGETS_PER_KITCHEN (7) seen targets, the paper's 140 in 20

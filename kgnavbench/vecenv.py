@@ -17,31 +17,49 @@ itself (its `vector_entry_point`), not copies of the single env.
 The semantics are the PettingZoo env's (kgnavbench/env.py), through the same `env.transition`:
 Actions: Discrete(10), the paper's order (0 MoveAhead, 1 MoveBack, 2 MoveRight, 3 MoveLeft, 4 RotateRight,
     5 RotateLeft, 6 LookUp, 7 LookDown, 8 OpenObject, 9 Stop); MultiDiscrete for the vector env.
-Observations (a dict of arrays; the vector env's have a leading num_envs axis; fresh, writable arrays
-    on every call):
+Keywords (both faces, also through gym.make / gym.make_vec / SB3's make_vec_env): kitchens, targets,
+    success_rule, stop_ends, max_steps (spec.max_episode_steps reports it; the env truncates there
+    itself), curriculum_steps=N (the trainer's start-distance curriculum over the env's first N steps,
+    counted in frames: every sub-env's step counts; starts at most `reach` actions from the
+    destination, reach growing from 0 to 25, then the training starts), observation ("dict" or "box"),
+    views, render_mode ("rgb_array"); the vector env also num_envs and autoreset_mode. An unknown
+    keyword is Python's TypeError; an unknown reset option or a bad value is a VecEnvError.
+Observations (fresh, writable arrays on every call; the vector env's have a leading num_envs axis):
+    observation="dict" (default):
     "features"        float32 (512,)  the frozen encoder's features of the current view, standardized
                                       with its statistics of the training kitchens (`encoder.standardize`),
-                                      what the learned agents see
+                                      what the learned agents see; bounds -inf..inf
     "target_features" float32 (512,)  the same for the target image (the view at the destination)
     "view_objects"    uint8 (125,)    1 for each object type visible in the current view
     "target_objects"  uint8 (125,)    the same for the target image
     "view", "target"  uint8 (84, 84, 3) the views themselves, with views=True (off by default: 20
                                       kitchens' views take about 1 GB)
+    observation="box": one float32 (1274,) vector, BOX_PARTS in this order: features (512),
+    view_objects (125), target_features (512), target_objects (125).
 Rewards: -0.01 every step; +0.01 the first time a goal state is reached; +10 on success.
 Termination: Stop ends the episode (stop_ends=False: a Stop that does not succeed is a no-op); success
     is Stop at the target's destination (success_rule="destination", the paper's) or in any state that
     shows it ("visible"). Truncation at max_steps (5000 by default, as in training).
 Episodes: a training target of the kitchen ("seen"; the validation and test kitchens have none, so
     there every target: "all") and a start at pitch 0 at least 10 actions from its destination, drawn
-    from the generator seeded by reset(seed=...).
-Autoreset (vector env): same step (gymnasium's AutoresetMode.SAME_STEP). A finished sub-env starts its
-    next episode inside the step that ended it: the returned observation is the new episode's first;
-    infos["final_obs"][i] (with mask infos["_final_obs"]) is the last one of the old, and
-    infos["final_info"] holds its success, episode_length, path_length, shortest_path, collisions and
-    episode_return, each with its `_key` mask. With autoreset=False (AutoresetMode.DISABLED) the step
-    that ends an episode returns its last observation and the same final_info; the finished sub-envs
-    wait for `reset(options={"reset_mask": mask})` (stepping them before is an error).
-    reset(options={"reach": N}) draws starts at most N actions from the destination (a curriculum).
+    from the generator seeded by reset(seed=...); reset(options={"reach": N}) draws a start at most N
+    actions away instead. The single env also takes reset(options={"target": id, "start": state,
+    "max_steps": n}): a given episode.
+Autoreset (vector env, `autoreset_mode`): "next_step" (default; gymnasium's NEXT_STEP, what its vector
+    wrappers such as NormalizeObservation expect): the step that ends an episode returns its last
+    observation; the sub-env's next step starts the next episode, ignoring its action, with reward 0
+    and neither terminated nor truncated. "same_step": the ending step returns the next episode's
+    first observation, the last one in infos["final_obs"][i] (mask infos["_final_obs"]). "disabled":
+    the ending step returns the last observation; the finished sub-envs wait for
+    `reset(options={"reset_mask": mask})` (stepping them before is an error). In every mode, every
+    step's infos["final_info"] holds the episodes that ended in it (masks False elsewhere): success,
+    episode_length, path_length, shortest_path, collisions and episode_return, each with its `_key`
+    mask. gym.make_vec's `wrappers=` needs vectorization_mode="sync" (gymnasium refuses wrappers for
+    a vector entry point): that builds the vector from single envs; or wrap the returned vector env
+    in gymnasium.wrappers.vector's wrappers.
+Rendering: render() (render_mode="rgb_array", render_fps 4) gives the egocentric view and the target
+    image above the top-down map of the kitchen, the navigator and its target marked; the vector env
+    renders its first sub-env.
 Infos: every step "kitchen" and "target" (object id) per sub-env. Nothing privileged: no state index,
     no expert action (the PettingZoo env's infos keep those for the shipped plugins and the oracle).
 

@@ -25,7 +25,7 @@ def one_thread():
 
 
 def test_sb3_ppo_trains_on_the_registered_env(floorplan1_tasks):
-    """The README's recipe: 2,048 steps of PPO over 4 copies of kgnavbench/FloorPlan1-v0."""
+    """docs/environments.md's recipe: 2,048 steps of PPO over 4 copies of kgnavbench/FloorPlan1-v0."""
     envs = make_vec_env("kgnavbench/FloorPlan1-v0", n_envs=4, seed=0)
     model = PPO("MultiInputPolicy", envs, n_steps=512, batch_size=256, n_epochs=2, seed=0, device="cpu")
     model.learn(total_timesteps=2048)

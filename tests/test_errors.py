@@ -1,4 +1,4 @@
-"""Every bad input the README promises a clear error for: one line `kgnavbench: error: ...` naming the
+"""Every bad input the docs promise a clear error for: one line `kgnavbench: error: ...` naming the
 problem, exit status 2, no traceback, and nothing half-written."""
 
 from __future__ import annotations

@@ -164,7 +164,7 @@ def test_object_records_are_consistent():
 
 
 def test_hidden_objects_exist_in_most_kitchens():
-    """Actionable targets need objects inside closed receptacles; the README counts about 90."""
+    """Actionable targets need objects inside closed receptacles."""
     hidden = {name: sum(o.hidden for o in load_kitchen(name).objects) for name in KITCHEN_NAMES}
     assert 60 <= sum(hidden.values()) <= 120, hidden
     assert sum(n > 0 for n in hidden.values()) >= 25, hidden

@@ -98,17 +98,24 @@ def test_a_copied_random_walk_is_a_new_method(local):
 
 
 def test_the_readme_worked_example_runs(local, floorplan1_tasks):
+    """README's "Add a plugin": copy baselines/random_walk.py and apply its sed edits (read from the
+    README, so that they cannot rot against the file): a plugin that never stops, so never succeeds."""
+    import re
+
     from kgnavbench.evaluate import EvalConfig, evaluate
 
     readme = (plugins.SOURCE_BASELINES_DIR.parent / "README.md").read_text()
-    intro = readme.index("`baselines/never_stop.py`:")
-    start = readme.index("```python\n", intro) + len("```python\n")
-    (local / "never_stop.py").write_text(readme[start : readme.index("```", start)])
+    assert "cp baselines/random_walk.py baselines/never_stop.py" in readme
+    text = (plugins.SOURCE_BASELINES_DIR / "random_walk.py").read_text()
+    edits = re.findall(r"-e 's/(.+?)/(.*?)/'", readme[readme.index("cp baselines/random_walk.py") :])
+    assert len(edits) == 2, edits
+    for pattern, replacement in edits:
+        text, n = re.subn(pattern, replacement, text, flags=re.M)
+        assert n == 1, pattern  # each edit changes the file exactly once
+    (local / "never_stop.py").write_text(text)
     plugin = load_plugin("never_stop")
-    assert plugin.config({"turn_probability": "0.5"}).turn_probability == 0.5
-    config = EvalConfig(
-        "never_stop", options=(("turn_probability", "0.5"),), kitchens=("FloorPlan1",), episodes_per_target=1
-    )
+    assert plugin.config({}).stop_probability == 0.0 and "never Stop" in plugin.module.DESCRIPTION
+    config = EvalConfig("never_stop", kitchens=("FloorPlan1",), episodes_per_target=1)
     run = evaluate(config, local.parent / "runs", progress=lambda line: None)
     assert run.results and not any(r.success for r in run.results)  # it never stops, so never succeeds
     assert all(r.episode_length == r.max_steps for r in run.results)

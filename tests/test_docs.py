@@ -1,0 +1,83 @@
+"""The documentation: README.md stays a guide read in one sitting, and every repository path that
+README.md and docs/*.md name exists."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+README_MAX_LINES = 400
+
+# a token that starts with one of these, or is one of the names below, is a path into the repository
+PREFIXES = (
+    "kgnavbench/",
+    "baselines/",
+    "benchmarks/",
+    "tables/",
+    "tests/",
+    "docs/",
+    "zoo/",
+    "examples/",
+    ".ci/",
+)
+TOP_LEVEL_FILES = ("Makefile", "pyproject.toml", "README.md")
+GYMNASIUM_ID = re.compile(r"kgnavbench/[\w.-]+-v\d+")  # `kgnavbench/FloorPlan1-v0` is an env id, not a path
+
+FENCE = re.compile(r"^(```|~~~).*?^\1", re.M | re.S)
+CODE_SPAN = re.compile(r"(`+)(.+?)\1", re.S)
+LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
+
+
+def documents() -> list[Path]:
+    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def prose(path: Path) -> str:
+    """The document without its fenced code blocks (commands there may create files)."""
+    return FENCE.sub("", path.read_text(encoding="utf-8"))
+
+
+def is_placeholder(path: str) -> bool:
+    return any(mark in path for mark in ("*", "<", "{", "..."))
+
+
+def named_paths(path: Path) -> list[str]:
+    """Repository paths named in `code spans` (each whitespace-separated token), relative to the root."""
+    found = []
+    for span in CODE_SPAN.finditer(prose(path)):
+        for token in span.group(2).split():
+            token = token.strip("'\"()[],;:").split("#")[0]
+            if is_placeholder(token) or GYMNASIUM_ID.fullmatch(token):
+                continue
+            if token.startswith(PREFIXES) or token in TOP_LEVEL_FILES:
+                found.append(token)
+    return found
+
+
+def linked_paths(path: Path) -> list[Path]:
+    """Local targets of markdown links and images, resolved against the document's folder; links that
+    leave the repository (`../shared/...`) and web addresses are not checked here."""
+    found = []
+    for link in LINK.finditer(prose(path)):
+        target = link.group(1).split("#")[0]
+        if not target or re.match(r"[a-z][a-z0-9+.-]*:", target, re.I) or is_placeholder(target):
+            continue  # an anchor in the same document, a URL or mailto:, a placeholder
+        resolved = (path.parent / target).resolve()
+        if resolved.is_relative_to(ROOT):
+            found.append(resolved)
+    return found
+
+
+def test_the_readme_is_read_in_one_sitting():
+    lines = (ROOT / "README.md").read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= README_MAX_LINES, f"README.md has {len(lines)} lines; at most {README_MAX_LINES}"
+
+
+def test_every_path_the_docs_name_exists():
+    missing = []
+    for doc in documents():
+        where = doc.relative_to(ROOT)
+        missing += [f"{where}: `{p}`" for p in named_paths(doc) if not (ROOT / p.rstrip("/")).exists()]
+        missing += [f"{where}: link {p.relative_to(ROOT)}" for p in linked_paths(doc) if not p.exists()]
+    assert not missing, "paths named in the docs that do not exist:\n" + "\n".join(missing)
