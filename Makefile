@@ -38,13 +38,13 @@ baselines: $(STAMP)
 
 ## test: lint (rules and formatting) and the test suite
 test: $(STAMP)
-	$(BIN)/ruff check kgnavbench baselines benchmarks tests docs
-	$(BIN)/ruff format --check kgnavbench baselines benchmarks tests docs
+	$(BIN)/ruff check kgnavbench baselines benchmarks tests docs examples
+	$(BIN)/ruff format --check kgnavbench baselines benchmarks tests docs examples
 	$(BIN)/pytest
 
 lint: $(STAMP)
-	$(BIN)/ruff check kgnavbench baselines benchmarks tests docs
-	$(BIN)/ruff format --check kgnavbench baselines benchmarks tests docs
+	$(BIN)/ruff check kgnavbench baselines benchmarks tests docs examples
+	$(BIN)/ruff format --check kgnavbench baselines benchmarks tests docs examples
 
 ## kitchens: recompile kgnavbench/data from ../shared/thor_data (the files are committed)
 kitchens: $(STAMP)

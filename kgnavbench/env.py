@@ -33,13 +33,16 @@ Termination: Stop ends the episode (stop_ends=False: a Stop that does not succee
     Truncation at max_steps (5000 in training; per episode in evaluation).
 Infos (per agent, every step): success, path_length (actions, Stop not counted), episode_length,
     shortest_path (from the start, under the success rule), collisions, target, target_kind,
-    target_seen, last_view_shows_target, kitchen; and, privileged (in evaluation only a plugin with
-    PRIVILEGED = True sees them: the oracle), state (the state graph's index) and expert_action (the
-    BFS-optimal next action).
+    target_seen, last_view_shows_target, kitchen; and, with privileged=True only (opt-in: a training
+    loop must not learn from them by accident; in evaluation only a plugin with PRIVILEGED = True
+    gets them: the oracle), state (the state graph's index) and expert_action (the BFS-optimal next
+    action).
 
 autoreset=True (outside PettingZoo's contract, for SuperSuit's vector envs): a navigator whose episode
     ends stays in `env.agents` and starts its next training episode in the same step; that step's
     observation is the new episode's first, its terminations/truncations and infos the ended one's.
+    reset() then returns empty infos (SuperSuit merges a whole-env reset's infos into the ended
+    episodes' when every navigator ended in one step).
 
 Episodes: in training, reset draws each agent a target (`targets`: "seen", "unseen", "all" or a list
 of object ids) and a start at pitch 0 at least 10 actions from the target's destination, from the
@@ -195,6 +198,7 @@ class NavigationEnv(ParallelEnv):
         features: bool = False,
         observation: str = "dict",
         autoreset: bool = False,
+        privileged: bool = False,
     ):
         if observation not in OBSERVATION_FORMATS:
             raise EnvError(f"unknown observation {observation!r}; choose one of {OBSERVATION_FORMATS}")
@@ -232,6 +236,9 @@ class NavigationEnv(ParallelEnv):
         v = self.graph.views.shape[1]
         n_types = len(object_types())
         self.features, self.observation, self.autoreset = features, observation, autoreset
+        if not isinstance(privileged, (bool, np.bool_)):
+            raise EnvError(f"privileged must be True or False, not {privileged!r}")
+        self.privileged = bool(privileged)  # infos with the state index and the expert action
         parts = {
             "view": spaces.Box(0, 255, (v, v, 3), np.uint8),
             "target": spaces.Box(0, 255, (v, v, 3), np.uint8),
@@ -375,6 +382,11 @@ class NavigationEnv(ParallelEnv):
         self._live_agents = list(self.agents)  # the names of _live, apart from the public env.agents
         self._trail = [int(self._state[0])] if n else []  # agent 0's states, for render()
         idx = np.arange(n)
+        if self.autoreset:
+            # no results yet, so no infos: SuperSuit resets the whole env when every navigator ended in
+            # the same step and merges the reset's infos into the ended episodes' (their success and
+            # lengths would read False and 0); the new episodes' infos come with their first step
+            return self._observations(self._live_agents, idx), {a: {} for a in self._live_agents}
         return self._observations(self._live_agents, idx), self._infos(self._live_agents, idx)
 
     def _check_reset(self, what: str) -> None:
@@ -572,9 +584,9 @@ class NavigationEnv(ParallelEnv):
                 "target_seen": seen,
                 "last_view_shows_target": shows,
                 "kitchen": kitchen,
-                "state": s,
-                "expert_action": expert,
             }
+            if self.privileged:
+                infos[a]["state"], infos[a]["expert_action"] = s, expert
         return infos
 
     # -- looking at it ---------------------------------------------------------------------------

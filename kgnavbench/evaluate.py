@@ -192,7 +192,12 @@ def kitchen_episodes(tasks: KitchenTasks, per_target: int) -> list[tuple[str, li
 
 
 def evaluate_kitchen(
-    plugin, plugin_config, config: EvalConfig, kitchen: str, checkpoint: Path | None = None
+    plugin,
+    plugin_config,
+    config: EvalConfig,
+    kitchen: str,
+    checkpoint: Path | None = None,
+    seen_only: bool = False,
 ) -> list[EpisodeResult]:
     """Every fixed episode of one kitchen at once: one env reset, an agent per episode (each with its
     column's cap), so a batched policy sees them all in one act() call. `checkpoint`: the weights a
@@ -203,6 +208,8 @@ def evaluate_kitchen(
     policy = plugin.make_policy(plugin_config, spec)
     columns, episodes = [], []
     for column, target_episodes in kitchen_episodes(tasks, config.episodes_per_target):
+        if seen_only and column != "seen_seen":  # (evaluate_policy's targets="seen")
+            continue
         columns += [column] * len(target_episodes)
         episodes += target_episodes
     env = parallel_env(
@@ -213,6 +220,7 @@ def evaluate_kitchen(
         stop_ends=config.stop_ends,
         tasks=tasks,
         features=True,  # the encoder's features of the view and target: what learned plugins look at
+        privileged=plugin.privileged,  # the state and expert action only for a plugin that says so
     )
     observations, infos = env.reset(options={"episodes": episodes})
     agents = list(env.agents)
@@ -800,11 +808,12 @@ class _GivenPlugin:
 
     policy: object
     deterministic: bool
+    box: bool = False
     source: str = "evaluate_policy(policy)"
     privileged: bool = False
 
     def make_policy(self, config, spec):
-        return _BatchedPolicy(self.policy, self.deterministic)
+        return _BatchedPolicy(self.policy, self.deterministic, self.box)
 
 
 class _BatchedPolicy:
@@ -815,8 +824,8 @@ class _BatchedPolicy:
     arrays, SB3's) is kept per agent: its agent axis is the one as long as the batch (axis 1 of
     sb3-contrib's (layers, agents, units) LSTM states)."""
 
-    def __init__(self, policy, deterministic: bool):
-        self.policy, self.deterministic = policy, deterministic
+    def __init__(self, policy, deterministic: bool, box: bool = False):
+        self.policy, self.deterministic, self.box = policy, deterministic, box
         self.predict = getattr(policy, "predict", None)
         if not callable(self.predict) and not callable(policy):
             raise EvalError("evaluate_policy needs a callable on observations or an object with predict()")
@@ -829,9 +838,14 @@ class _BatchedPolicy:
         self.state.pop(agent, None)
 
     def act_batch(self, agents, observations, infos):
+        if self.box:  # the Gymnasium envs' observation="box": BOX_PARTS side by side, float32
+            from .vecenv import BOX_PARTS
+
+            parts = [np.asarray(observations[k], np.float32) for k in BOX_PARTS]
+            return self._actions(list(agents), np.concatenate(parts, axis=1))
         return self._actions(list(agents), {k: np.asarray(observations[k]) for k in OBSERVATION_KEYS})
 
-    def _actions(self, agents: list[str], batch: dict) -> np.ndarray:
+    def _actions(self, agents: list[str], batch) -> np.ndarray:
         if not callable(self.predict):
             return np.asarray(self.policy(batch)).reshape(len(agents)).astype(np.int64)
         starts = np.array([a in self.fresh for a in agents])
@@ -871,6 +885,8 @@ def evaluate_policy(
     success_rule: str = "destination",
     seed: int = 0,
     deterministic: bool = False,
+    observation: str = "dict",
+    targets: str = "all",
     progress=None,
 ) -> dict:
     """Table I's fixed episodes for your own policy, no plugin file: the same episodes, caps and rules
@@ -881,7 +897,15 @@ def evaluate_policy(
     as the Gymnasium vector env's: features, target_features, view_objects, target_objects) returning
     one action per agent, or any object with Stable-Baselines3's `predict(observation, state=None,
     episode_start=None, deterministic=False)` (a trained SB3 model; a recurrent one's state is kept per
-    agent through `episode_start`). Nothing is written to disk; results are not cached."""
+    agent through `episode_start`). observation="box": the policy gets the Gymnasium envs' flat Box
+    instead, one float32 row of 1274 per agent (`vecenv.BOX_PARTS`), as a model trained on
+    observation="box" expects. targets="seen": only the seen targets of training kitchens (Table I's
+    seen/seen cells), "all" (default): every target. Nothing is written to disk; results are not
+    cached."""
+    if observation not in ("dict", "box"):
+        raise EvalError(f"unknown observation {observation!r}; choose 'dict' or 'box'")
+    if targets not in ("all", "seen"):
+        raise EvalError(f"unknown targets {targets!r}; choose 'all' or 'seen'")
     config = EvalConfig(
         method="evaluate_policy",
         success_rule=success_rule,
@@ -890,11 +914,11 @@ def evaluate_policy(
         episodes_per_target=episodes,
         seed=seed,
     )
-    plugin = _GivenPlugin(policy, deterministic)
+    plugin = _GivenPlugin(policy, deterministic, observation == "box")
     results = []
     for kitchen in config.kitchen_list():
         t0 = time.perf_counter()
-        done = evaluate_kitchen(plugin, None, config, kitchen)
+        done = evaluate_kitchen(plugin, None, config, kitchen, seen_only=targets == "seen")
         results += done
         if progress:
             progress(f"{kitchen}: {len(done)} episodes in {time.perf_counter() - t0:.1f} s")

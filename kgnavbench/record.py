@@ -319,6 +319,7 @@ def record_episodes(
                 stop_ends=stop_ends,
                 tasks=tasks,
                 features=True,  # as in evaluation
+                privileged=True,  # the trail reads the states; the plugin sees them if PRIVILEGED
             )
             for row in (r for k, r in chosen if k == kitchen):
                 e = totals["episodes"]

@@ -47,6 +47,26 @@ def test_sb3_ppo_trains_on_the_pettingzoo_env_through_supersuit(floorplan1_tasks
     assert model.num_timesteps == 2048
 
 
+def test_supersuit_keeps_the_results_of_episodes_that_all_end_in_one_step(floorplan1_tasks):
+    """When every navigator ends in the same step SuperSuit resets the whole env and merges the reset's
+    infos into the ended episodes': with autoreset the reset's infos are empty, so the ended episodes'
+    success and lengths survive. And the infos hold nothing privileged unless asked for."""
+    import supersuit as ss
+
+    env = parallel_env(kitchen="FloorPlan1", n_agents=3, observation="box", autoreset=True, max_steps=50)
+    venv = ss.pettingzoo_env_to_vec_env_v1(env)
+    venv.reset(seed=0)
+    _, _, terminations, _, infos = venv.step(np.full(3, STOP))  # all three Stop at once: all end
+    assert terminations.all()
+    for info in infos:
+        assert info["episode_length"] == 1 and info["success"] is False and info["path_length"] == 0
+        assert "state" not in info and "expert_action" not in info
+    _, infos = parallel_env(kitchen="FloorPlan1", n_agents=1).reset(seed=0)
+    assert "state" not in infos["navigator_0"] and "expert_action" not in infos["navigator_0"]
+    _, infos = parallel_env(kitchen="FloorPlan1", n_agents=1, privileged=True).reset(seed=0)
+    assert {"state", "expert_action"} <= set(infos["navigator_0"])
+
+
 def test_autoreset_keeps_every_navigator_and_starts_its_next_episode_in_place(floorplan1_tasks):
     env = parallel_env(kitchen="FloorPlan1", n_agents=6, autoreset=True, max_steps=30)
     observations, _ = env.reset(seed=2)
@@ -77,7 +97,7 @@ def test_box_and_feature_observations_match_the_cache(floorplan1_tasks):
 
     features = standardize(state_features("FloorPlan1"), encoder_feature_stats()).numpy()
     objects = np.asarray(floorplan1_tasks.graph.object_vectors)
-    box = parallel_env(kitchen="FloorPlan1", n_agents=2, observation="box")
+    box = parallel_env(kitchen="FloorPlan1", n_agents=2, observation="box", privileged=True)
     both = parallel_env(kitchen="FloorPlan1", n_agents=2, features=True)
     b, infos = box.reset(seed=5)
     d, _ = both.reset(seed=5)

@@ -85,3 +85,23 @@ def test_a_stable_baselines3_model_is_evaluated_in_one_call(floorplan1_tasks):
     assert got["episodes"] == got["summary"]["all/all"]["episodes"] > 0
     with pytest.raises(ValueError, match="callable on observations or an object with predict"):
         kgnavbench.evaluate_policy(object(), kitchens=["FloorPlan1"], episodes=1)
+
+
+@pytest.mark.parametrize("example", ["sb3_ppo.py", "cleanrl_ppo.py"])
+def test_the_examples_run_and_end_in_a_json_summary(example, hermetic_cache):
+    """examples/: a few seconds each, so that they cannot rot; the last line is evaluate_policy's JSON."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).parent.parent / "examples" / example
+    out = subprocess.run(
+        [sys.executable, str(path), "--steps", "4096", "--envs", "4", "--episodes", "1"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["episodes"] == 7 and "seen_seen/static" in result["summary"]

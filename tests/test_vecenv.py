@@ -35,7 +35,9 @@ def test_navigators_give_the_envs_episodes(floorplan1_tasks, rule):
     episodes = [
         {"target": t.object_id, "start": s, "max_steps": 60} for t in tasks.targets[:6] for s in t.starts[:3]
     ]
-    env = parallel_env(kitchen="FloorPlan1", n_agents=len(episodes), targets="all", success_rule=rule)
+    env = parallel_env(
+        kitchen="FloorPlan1", n_agents=len(episodes), targets="all", success_rule=rule, privileged=True
+    )
     _, infos = env.reset(options={"episodes": episodes})
     agents = list(env.agents)
     nav = vecenv.Navigators(space, np.zeros(len(episodes), np.int64))
