@@ -463,8 +463,7 @@ def run_table(
     done: list[tuple[bool, float]] = []
 
     def eta() -> str:
-        todo = [k for k, o in zip(kinds, outcomes, strict=True) if o is None]
-        left = time_left(done, todo) if todo else None  # (none left: nothing to say)
+        left = time_left(done, [k for k, o in zip(kinds, outcomes, strict=True) if o is None])
         return f", about {left / 60 / workers:.0f} min left" if left is not None else ""
 
     def title(n: int) -> str:
