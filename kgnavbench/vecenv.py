@@ -82,7 +82,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .encoder import FEATURE_DIM, N_TYPES, encoder_feature_stats, standardize, state_features
-from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, transition
+from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, _is_integer, transition
 from .graph import VIEW_SIZE
 from .kitchens import KITCHEN_NAMES, check_name, object_types
 from .render import top_down_map
@@ -406,7 +406,7 @@ def observation_space(
 
 
 def _positive_int(value, name: str) -> int:
-    if not isinstance(value, (int, np.integer)) or isinstance(value, (bool, np.bool_)) or value < 1:
+    if not _is_integer(value) or value < 1:
         raise VecEnvError(f"{name} must be a positive integer, not {value!r}")
     return int(value)
 
@@ -464,7 +464,7 @@ class _Navigation:
         self._target_names = np.array(self.space.target_ids, dtype=object)
 
     def _curriculum(self, steps) -> None:
-        if not isinstance(steps, (int, np.integer)) or isinstance(steps, (bool, np.bool_)) or steps < 0:
+        if not _is_integer(steps) or steps < 0:
             raise VecEnvError(f"curriculum_steps must be a whole number of steps >= 0, not {steps!r}")
         self.curriculum_steps = int(steps)
 
@@ -619,9 +619,7 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
             if mask.shape != (self.num_envs,) or mask.dtype != bool:
                 raise VecEnvError(f"reset_mask must be {self.num_envs} bools, got {mask.dtype} {mask.shape}")
             idx = np.flatnonzero(mask)
-        if reach is not None and (
-            not isinstance(reach, (int, np.integer)) or isinstance(reach, (bool, np.bool_)) or reach < 0
-        ):
+        if reach is not None and (not _is_integer(reach) or reach < 0):
             raise VecEnvError(f"reach must be a whole number of actions >= 0, not {reach!r}")
         reach = self.reach() if reach is None else int(reach)
         self.navigators.draw(idx, self.np_random, self.max_steps, reach)
@@ -771,9 +769,7 @@ class NavigationGymEnv(_Navigation, Env):
             if "start" in options:
                 raise VecEnvError("start needs its target: reset(options={'target': id, 'start': state})")
             reach = options.get("reach")
-            if reach is not None and (
-                not isinstance(reach, (int, np.integer)) or isinstance(reach, (bool, np.bool_)) or reach < 0
-            ):
+            if reach is not None and (not _is_integer(reach) or reach < 0):
                 raise VecEnvError(f"reach must be a whole number of actions >= 0, not {reach!r}")
             nav.kitchen[0] = self.np_random.integers(len(sp.kitchens))
             nav.draw(
@@ -791,11 +787,7 @@ class NavigationGymEnv(_Navigation, Env):
         k = int(sp.target_kitchen[row])
         local = options.get("start")
         n_local = int(sp.offsets[k + 1] - sp.offsets[k])
-        if (
-            not isinstance(local, (int, np.integer))
-            or isinstance(local, (bool, np.bool_))
-            or not 0 <= local < n_local
-        ):
+        if not _is_integer(local) or not 0 <= local < n_local:
             raise VecEnvError(
                 f"start must be a state index of {sp.kitchens[k]} (0..{n_local - 1}), not {local!r}"
             )
