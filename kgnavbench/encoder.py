@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .files import atomic_write, first_line
+from .files import atomic_write, file_matches_checksum, first_line, save_with_checksum
 from .graph import VIEW_SIZE, cache_dir, graph_fingerprint, state_graph
 from .kitchens import DATA_DIR, check_name
 from .tasks import load_task_file
@@ -440,23 +440,29 @@ def encode_views(encoder: Encoder, views: np.ndarray, batch: int = 256) -> np.nd
 
 def state_features(kitchen: str, root: Path | None = None) -> np.ndarray:
     """(S, 512) float16 features of every state's view (read-only memmap), from the cache or computed
-    now with the committed encoder (and cached). A cache file that is unreadable or has the wrong
-    shape or type is rebuilt, never trusted."""
+    now with the committed encoder (and cached, with its sha256 beside it). A cache file that is
+    unreadable, has no checksum or does not match it, has the wrong shape or type or holds a number that
+    is not finite is rebuilt, never trusted."""
     check_name(kitchen)
     graph = state_graph(kitchen, VIEW_SIZE, root)
     path = features_path(kitchen, root)
     expected = (graph.n_states, FEATURE_DIM)
     if path.exists():
         try:
+            match = file_matches_checksum(path)
+            if not match:
+                raise ValueError("no checksum" if match is None else "they do not match their checksum")
             features = np.load(path, mmap_mode="r")
             if features.shape != expected or features.dtype != np.float16:
                 raise ValueError(f"{features.dtype} {features.shape}, expected float16 {expected}")
+            if not np.isfinite(features).all():
+                raise ValueError("they hold numbers that are not finite")
             return features
         except Exception as e:  # noqa: BLE001 - derived data: rebuild whatever is wrong with it
             print(
-                f"kgnavbench: cached features {path.name} are unreadable ({e}); rebuilding them",
+                f"kgnavbench: cached features {path.name} cannot be trusted ({e}); rebuilding them",
                 file=sys.stderr,
             )
     features = encode_views(_cached_encoder(), graph.views)
-    atomic_write(path, lambda f: np.save(f, features))
+    save_with_checksum(path, lambda f: np.save(f, features))
     return np.load(path, mmap_mode="r")

@@ -98,6 +98,41 @@ def checksum_matches(path: Path, data: bytes) -> bool | None:
     return recorded == hashlib.sha256(data).hexdigest()
 
 
+def sha256_file(path: Path) -> str:
+    """The sha256 of a file's bytes, read in 1 MiB chunks (a cache file may be a 60 MB array)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def save_with_checksum(path: Path, save) -> None:
+    """`write_with_checksum` for content that a function save(binary file) writes (a large array): the
+    file atomically, then the sha256 of what landed, beside it."""
+    checksum_path(path).unlink(missing_ok=True)
+    atomic_write(path, save)
+    atomic_write(checksum_path(path), f"{sha256_file(path)}  {path.name}\n")
+
+
+_verified: dict[tuple, str] = {}
+
+
+def file_matches_checksum(path: Path) -> bool | None:
+    """Whether the file at `path` still has the content written with its checksum; None where there is
+    no checksum. A file verified before in this process, same size and modification time, is not read
+    again (a process loads each cached array once, and a second load would cost as much again)."""
+    try:
+        recorded = checksum_path(path).read_text().split()[0]
+        stat = path.stat()
+    except (OSError, UnicodeDecodeError, IndexError):
+        return None
+    key = (str(path), stat.st_size, stat.st_mtime_ns, recorded)
+    if key not in _verified:
+        _verified[key] = sha256_file(path)
+    return _verified[key] == recorded
+
+
 def end_with_parent(parent: int) -> None:
     """A process pool's initializer (`initargs=(os.getpid(),)`): the worker ends as soon as the process
     that started it is gone, killed or not, instead of working on for nobody (a worker is re-parented

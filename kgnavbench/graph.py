@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .files import atomic_write, end_with_parent
+from .files import end_with_parent, file_matches_checksum, save_with_checksum
 from .kitchens import KITCHEN_DIR, KITCHEN_NAMES, check_name, object_types
 from .render import Visibility, render_views, visibility
 from .world import ACTIONS, HEADINGS, PITCHES, Pose, World
@@ -233,20 +233,56 @@ def save_graph(graph: StateGraph, root: Path) -> None:
         vis_pixels=np.array([p for v in graph.visible for p in v.pixels], np.int64),
         open_target=np.array(open_target, np.int64),
     )
-    atomic_write(views_path, lambda f: np.save(f, graph.views))
-    atomic_write(graph_path, lambda f: np.savez(f, **arrays))
+    save_with_checksum(views_path, lambda f: np.save(f, graph.views))
+    save_with_checksum(graph_path, lambda f: np.savez(f, **arrays))
+
+
+def _check_graph_arrays(a: dict, n_objects: int) -> None:
+    """Raise ValueError where the arrays of a cached graph cannot be a state graph (a transition or an
+    object out of range, a length that disagrees): a file that matches its checksum is what was
+    written, and this says that what was written makes sense."""
+    n = len(a["cell"])
+    for name in ("heading", "pitch", "opened", "open_target"):
+        if a[name].shape != (n,):
+            raise ValueError(f"{name} has shape {a[name].shape}, not ({n},)")
+    for name in ("next", "ok"):
+        if a[name].shape != (n, len(ACTIONS)):
+            raise ValueError(f"{name} has shape {a[name].shape}, not ({n}, {len(ACTIONS)})")
+    ranges = {
+        "next": (a["next"], 0, n),
+        "cell": (a["cell"], 0, len(a["cells"])),
+        "opened": (a["opened"], -1, n_objects),
+        "open_target": (a["open_target"], -1, n_objects),
+        "vis_obj": (a["vis_obj"], 0, n_objects),
+    }
+    for name, (values, low, high) in ranges.items():
+        if values.size and (values.min() < low or values.max() >= high):
+            raise ValueError(f"{name} points outside {low}..{high - 1}")
+    ptr = a["vis_ptr"]
+    if ptr.shape != (n + 1,) or ptr[0] != 0 or (np.diff(ptr) < 0).any() or ptr[-1] != len(a["vis_obj"]):
+        raise ValueError("its visibility index does not cover its visible objects")
+    if a["vis_pixels"].shape != a["vis_obj"].shape:
+        raise ValueError("visible objects and their pixel counts differ in number")
 
 
 def load_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = None) -> StateGraph | None:
-    """The cached graph, or None when there is none (or it is unreadable: then it gets rebuilt)."""
+    """The cached graph, or None when there is none, or when it is unreadable, has no checksum or does not
+    match it, or makes no sense as a graph: then it gets rebuilt, never trusted."""
     graph_path, views_path = _cache_paths(kitchen, view_size, root or cache_dir())
     if not (graph_path.exists() and views_path.exists()):
         return None
     try:
+        for path in (graph_path, views_path):
+            match = file_matches_checksum(path)
+            if not match:
+                raise ValueError(
+                    f"{path.name} " + ("has no checksum" if match is None else "does not match its checksum")
+                )
         with np.load(graph_path) as z:
             a = {k: z[k] for k in z.files}
         views = np.load(views_path, mmap_mode="r")
         world = World(kitchen)
+        _check_graph_arrays(a, len(world.objects))
         ptr = a["vis_ptr"]
         visible = [
             Visibility(
@@ -277,7 +313,7 @@ def load_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = Non
         return graph
     except Exception as e:  # noqa: BLE001 - any unreadable cache file is rebuilt, not trusted
         print(
-            f"kgnavbench: cached state graph of {kitchen} is unreadable ({e}); rebuilding it", file=sys.stderr
+            f"kgnavbench: cached state graph of {kitchen} cannot be trusted ({e}); rebuilding it", file=sys.stderr
         )
         return None
 

@@ -337,10 +337,82 @@ def test_json_output_stays_json_when_the_cache_is_rebuilt(capsys, tmp_path, monk
         argv = ["eval", "--method", "oracle", "--kitchens", "FloorPlan1", "--episodes", "1", "--json"]
         code, out, err = run(capsys, *argv, "--runs", str(tmp_path))
         assert code == 0, err
-        assert "unreadable" in err
+        assert "cannot be trusted" in err
         assert json.loads(out)["summary"]["all/all"]["sr"] == 100.0
     finally:
         graph_path.write_bytes(saved)
+
+
+@pytest.mark.parametrize(
+    "damage, named",
+    [
+        ("scrambled", "do not match their checksum"),  # rows permuted: a readable file, same shape and type
+        ("no checksum", "no checksum"),
+        ("not finite", "not finite"),  # with a checksum that matches: what was written must make sense
+    ],
+)
+def test_a_cached_feature_file_is_checked_not_trusted(capsys, damage, named, floorplan1_tasks):
+    import numpy as np
+
+    from kgnavbench import encoder
+    from kgnavbench.files import checksum_path, save_with_checksum
+
+    path = encoder.features_path("FloorPlan1")
+    good = np.array(encoder.state_features("FloorPlan1"))
+    bad = good[::-1].copy()
+    if damage == "not finite":
+        bad = good.copy()
+        bad[3, 7] = np.nan
+    if damage == "not finite":  # rewritten with a checksum that matches it
+        save_with_checksum(path, lambda f: np.save(f, bad))
+    else:  # written over in place: the good file's checksum stays beside it, or goes
+        np.save(path, bad)
+        if damage == "no checksum":
+            checksum_path(path).unlink()
+    capsys.readouterr()
+    rebuilt = encoder.state_features("FloorPlan1")
+    err = capsys.readouterr().err
+    assert "cannot be trusted" in err and named in err, err
+    assert np.array_equal(np.array(rebuilt), good)
+    assert encoder.state_features("FloorPlan1") is not None and capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize(
+    "damage, named",
+    [
+        ("transition out of range", "next points outside"),
+        ("object out of range", "vis_obj points outside"),
+        ("no checksum", "no checksum"),
+    ],
+)
+def test_a_cached_state_graph_is_checked_not_trusted(capsys, damage, named, floorplan1_tasks):
+    """A state-graph file whose transitions point past its states is rebuilt, even with a checksum
+    that matches it (a step would index outside the tables: a traceback, or a wrong episode)."""
+    import numpy as np
+
+    root = graph_stage.cache_dir()
+    graph_path, _ = graph_stage._cache_paths("FloorPlan1", graph_stage.VIEW_SIZE, root)
+    with np.load(graph_path) as z:
+        arrays = {k: z[k] for k in z.files}
+    good = graph_stage.state_graph("FloorPlan1")
+    if damage == "transition out of range":
+        arrays["next"][5, 0] = len(arrays["cell"]) + 10
+    elif damage == "object out of range":
+        arrays["vis_obj"][0] = 10_000
+    if damage == "no checksum":
+        from kgnavbench.files import checksum_path
+
+        checksum_path(graph_path).unlink()
+    else:
+        from kgnavbench.files import save_with_checksum
+
+        save_with_checksum(graph_path, lambda f: np.savez(f, **arrays))
+    capsys.readouterr()
+    rebuilt = graph_stage.state_graph("FloorPlan1")
+    err = capsys.readouterr().err
+    assert "cannot be trusted" in err and named in err, err
+    assert np.array_equal(rebuilt.next_state, good.next_state)
+    assert graph_stage.load_graph("FloorPlan1") is not None and capsys.readouterr().err == ""
 
 
 CHDIR = WALKER.format(reset="pass", act="return {a: 9 for a in observations}").replace(
