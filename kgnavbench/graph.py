@@ -313,7 +313,8 @@ def load_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = Non
         return graph
     except Exception as e:  # noqa: BLE001 - any unreadable cache file is rebuilt, not trusted
         print(
-            f"kgnavbench: cached state graph of {kitchen} cannot be trusted ({e}); rebuilding it", file=sys.stderr
+            f"kgnavbench: cached state graph of {kitchen} cannot be trusted ({e}); rebuilding it",
+            file=sys.stderr,
         )
         return None
 
