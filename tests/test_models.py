@@ -453,7 +453,7 @@ def test_state_features_are_cached_reused_and_rebuilt(floorplan5, monkeypatch, c
     path.write_bytes(b"garbage")
     rebuilt = state_features("FloorPlan5")
     assert np.array_equal(rebuilt, features)
-    assert "unreadable" in capsys.readouterr().err
+    assert "cannot be trusted" in capsys.readouterr().err
     # a file of the wrong shape too
     np.save(path, np.zeros((3, FEATURE_DIM), np.float16))
     assert state_features("FloorPlan5").shape == (floorplan5.n_states, FEATURE_DIM)

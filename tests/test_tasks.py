@@ -12,6 +12,7 @@ import pytest
 
 from kgnavbench import graph as graph_stage
 from kgnavbench import tasks
+from kgnavbench.files import checksum_path
 from kgnavbench.graph import (
     OPEN,
     STOP,
@@ -417,6 +418,7 @@ def cache_copy(graph, tmp_path):
     for source, copy in zip(sources, copies):
         assert source.exists()
         shutil.copyfile(source, copy)
+        shutil.copyfile(checksum_path(source), checksum_path(copy))  # a copy with its checksum is trusted
     return tmp_path, copies
 
 
@@ -465,7 +467,7 @@ def test_corrupt_cache_is_rebuilt_with_the_same_result(graph, cache_copy, monkey
     rebuilt = graph_stage.state_graph("FloorPlan1", root=root)
     assert len(builds) == 1
     out, err = capsys.readouterr()
-    assert "unreadable" in err and not out  # stdout stays clean for --json
+    assert "cannot be trusted" in err and not out  # stdout stays clean for --json
     _assert_same_graph(rebuilt, graph)
     # the rebuilt graph replaced the corrupt file, and the session cache was never touched
     _assert_same_graph(load_graph("FloorPlan1", root=root), graph)
