@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .files import atomic_write, file_matches_checksum, first_line, save_with_checksum
+from .files import atomic_write, first_line, require_checksum, write_with_checksum
 from .graph import VIEW_SIZE, cache_dir, graph_fingerprint, state_graph
 from .kitchens import DATA_DIR, check_name
 from .tasks import load_task_file
@@ -449,9 +449,7 @@ def state_features(kitchen: str, root: Path | None = None) -> np.ndarray:
     expected = (graph.n_states, FEATURE_DIM)
     if path.exists():
         try:
-            match = file_matches_checksum(path)
-            if not match:
-                raise ValueError("no checksum" if match is None else "they do not match their checksum")
+            require_checksum(path)
             features = np.load(path, mmap_mode="r")
             if features.shape != expected or features.dtype != np.float16:
                 raise ValueError(f"{features.dtype} {features.shape}, expected float16 {expected}")
@@ -464,5 +462,5 @@ def state_features(kitchen: str, root: Path | None = None) -> np.ndarray:
                 file=sys.stderr,
             )
     features = encode_views(_cached_encoder(), graph.views)
-    save_with_checksum(path, lambda f: np.save(f, features))
+    write_with_checksum(path, lambda f: np.save(f, features))
     return np.load(path, mmap_mode="r")

@@ -44,6 +44,7 @@ from .files import (
     duration_text,
     first_line,
     git_revision,
+    sha256_file,
     write_with_checksum,
 )
 from .kitchens import KITCHEN_NAMES, check_name
@@ -362,13 +363,13 @@ def freeze_weights(directory: Path, weights: Weights) -> Path:
     hard link where the file system allows it and the source still holds those bytes (the trainer
     replaces checkpoints by renaming, so the link keeps them), else a copy of the bytes read."""
     path = directory / "weights.pt"
-    if path.exists() and _sha256_file(path) == weights.sha256:
+    if path.exists() and sha256_file(path) == weights.sha256:
         return path
     link = path.with_name(".weights.pt.link")
     try:
         link.unlink(missing_ok=True)
         os.link(weights.source, link)
-        if _sha256_file(link) != weights.sha256:
+        if sha256_file(link) != weights.sha256:
             raise OSError("the checkpoint changed since it was read")
         os.replace(link, path)
         atomic_write(checksum_path(path), f"{weights.sha256}  {path.name}\n")
@@ -379,10 +380,6 @@ def freeze_weights(directory: Path, weights: Weights) -> Path:
         except OSError as e:
             raise EvalError(f"cannot write {path}: {e.strerror or e}; choose another --runs folder") from e
     return path
-
-
-def _sha256_file(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def selected_checkpoint(run: str | Path, method: str, which: str = "best") -> Path:

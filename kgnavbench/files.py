@@ -80,12 +80,14 @@ def checksum_path(path: Path) -> Path:
     return path.with_name(f"{path.name}.sha256")
 
 
-def write_with_checksum(path: Path, data: bytes) -> None:
-    """Write data atomically and its sha256 beside it. The old checksum goes first, so a crash at any
-    moment leaves a file with its own checksum or with none, never one with another file's."""
+def write_with_checksum(path: Path, content) -> None:
+    """Write `content` (bytes, or a function save(binary file) for a large array) atomically and its
+    sha256 beside it. The old checksum goes first, so a crash at any moment leaves a file with its own
+    checksum or with none, never one with another file's."""
     checksum_path(path).unlink(missing_ok=True)
-    atomic_write(path, data)
-    atomic_write(checksum_path(path), f"{hashlib.sha256(data).hexdigest()}  {path.name}\n")
+    atomic_write(path, content)
+    digest = hashlib.sha256(content).hexdigest() if isinstance(content, bytes) else sha256_file(path)
+    atomic_write(checksum_path(path), f"{digest}  {path.name}\n")
 
 
 def checksum_matches(path: Path, data: bytes) -> bool | None:
@@ -107,14 +109,6 @@ def sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
-def save_with_checksum(path: Path, save) -> None:
-    """`write_with_checksum` for content that a function save(binary file) writes (a large array): the
-    file atomically, then the sha256 of what landed, beside it."""
-    checksum_path(path).unlink(missing_ok=True)
-    atomic_write(path, save)
-    atomic_write(checksum_path(path), f"{sha256_file(path)}  {path.name}\n")
-
-
 _verified: dict[tuple, str] = {}
 
 
@@ -131,6 +125,16 @@ def file_matches_checksum(path: Path) -> bool | None:
     if key not in _verified:
         _verified[key] = sha256_file(path)
     return _verified[key] == recorded
+
+
+def require_checksum(path: Path) -> None:
+    """Raise ValueError unless the file at `path` matches the checksum written with it (a cache file
+    without one, or one that changed since, is not to be trusted)."""
+    match = file_matches_checksum(path)
+    if not match:
+        raise ValueError(
+            f"{path.name} " + ("has no checksum" if match is None else "does not match its checksum")
+        )
 
 
 def end_with_parent(parent: int) -> None:

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .files import end_with_parent, file_matches_checksum, save_with_checksum
+from .files import end_with_parent, require_checksum, write_with_checksum
 from .kitchens import KITCHEN_DIR, KITCHEN_NAMES, check_name, object_types
 from .render import Visibility, render_views, visibility
 from .world import ACTIONS, HEADINGS, PITCHES, Pose, World
@@ -233,8 +233,8 @@ def save_graph(graph: StateGraph, root: Path) -> None:
         vis_pixels=np.array([p for v in graph.visible for p in v.pixels], np.int64),
         open_target=np.array(open_target, np.int64),
     )
-    save_with_checksum(views_path, lambda f: np.save(f, graph.views))
-    save_with_checksum(graph_path, lambda f: np.savez(f, **arrays))
+    write_with_checksum(views_path, lambda f: np.save(f, graph.views))
+    write_with_checksum(graph_path, lambda f: np.savez(f, **arrays))
 
 
 def _check_graph_arrays(a: dict, n_objects: int) -> None:
@@ -272,12 +272,8 @@ def load_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = Non
     if not (graph_path.exists() and views_path.exists()):
         return None
     try:
-        for path in (graph_path, views_path):
-            match = file_matches_checksum(path)
-            if not match:
-                raise ValueError(
-                    f"{path.name} " + ("has no checksum" if match is None else "does not match its checksum")
-                )
+        require_checksum(graph_path)
+        require_checksum(views_path)
         with np.load(graph_path) as z:
             a = {k: z[k] for k in z.files}
         views = np.load(views_path, mmap_mode="r")

@@ -346,7 +346,7 @@ def test_json_output_stays_json_when_the_cache_is_rebuilt(capsys, tmp_path, monk
 @pytest.mark.parametrize(
     "damage, named",
     [
-        ("scrambled", "do not match their checksum"),  # rows permuted: a readable file, same shape and type
+        ("scrambled", "does not match its checksum"),  # rows permuted: a readable file, same shape and type
         ("no checksum", "no checksum"),
         ("not finite", "not finite"),  # with a checksum that matches: what was written must make sense
     ],
@@ -355,18 +355,16 @@ def test_a_cached_feature_file_is_checked_not_trusted(capsys, damage, named, flo
     import numpy as np
 
     from kgnavbench import encoder
-    from kgnavbench.files import checksum_path, save_with_checksum
+    from kgnavbench.files import checksum_path, write_with_checksum
 
     path = encoder.features_path("FloorPlan1")
     good = np.array(encoder.state_features("FloorPlan1"))
-    bad = good[::-1].copy()
-    if damage == "not finite":
+    if damage == "not finite":  # rewritten with a checksum that matches it
         bad = good.copy()
         bad[3, 7] = np.nan
-    if damage == "not finite":  # rewritten with a checksum that matches it
-        save_with_checksum(path, lambda f: np.save(f, bad))
-    else:  # written over in place: the good file's checksum stays beside it, or goes
-        np.save(path, bad)
+        write_with_checksum(path, lambda f: np.save(f, bad))
+    else:  # written over in place, rows reversed: the good file's checksum stays beside it, or goes
+        np.save(path, good[::-1])
         if damage == "no checksum":
             checksum_path(path).unlink()
     capsys.readouterr()
@@ -404,9 +402,9 @@ def test_a_cached_state_graph_is_checked_not_trusted(capsys, damage, named, floo
 
         checksum_path(graph_path).unlink()
     else:
-        from kgnavbench.files import save_with_checksum
+        from kgnavbench.files import write_with_checksum
 
-        save_with_checksum(graph_path, lambda f: np.savez(f, **arrays))
+        write_with_checksum(graph_path, lambda f: np.savez(f, **arrays))
     capsys.readouterr()
     rebuilt = graph_stage.state_graph("FloorPlan1")
     err = capsys.readouterr().err
