@@ -14,6 +14,7 @@
                      [--seed S] [--kitchens A,B] [--runs DIR] [--record FILE.rrd] [--device auto|cpu|cuda]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR] [--workers N]
                      [--jobs | --job N | --worker] [--trained DIR | --train-only] [--device auto|cpu|cuda]
+    kgnavbench ship RUN_DIR [--zoo DIR] [--last]
     kgnavbench figures [--preset quick] [--runs DIR] [--out DIR]
     kgnavbench view FILE.rrd
     kgnavbench encoder pretrain [--epochs N] [--samples-per-epoch N] [--shift PX] [--seed S] [--out FILE]
@@ -426,6 +427,30 @@ def cmd_table(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_ship(args: argparse.Namespace) -> int:
+    from .runs import TrainError, load_checkpoint
+    from .table import ship_run
+    from .table_spec import TableError
+
+    arguments.writable_folder(args.zoo, "--zoo")
+    try:
+        out = ship_run(args.run, args.zoo, ("best", "last") if args.last else ("best",))
+        config = json.loads((out / "config.json").read_text())
+        finished = json.loads((out / "finished.json").read_text())
+        best_frames = load_checkpoint(out / "best.pt")["frames"]
+    except (TableError, TrainError, OSError, json.JSONDecodeError) as e:
+        raise UsageError(str(e)) from e
+    size = sum(f.stat().st_size for f in out.iterdir())
+    total = sum(f.stat().st_size for f in args.zoo.rglob("*") if f.is_file())
+    print(f"shipped {out}: {size / 1e6:.1f} MB ({args.zoo} now {total / 1e6:.1f} MB)")
+    print("its row for zoo/README.md:")
+    print(
+        f"| `{out.name}` | {config['method']} | seed {config['seed']} | "
+        f"{finished['frames']:,} (best.pt from {best_frames:,}) |"
+    )
+    return 0
+
+
 def _runs_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
 
@@ -649,6 +674,19 @@ def build_parser() -> argparse.ArgumentParser:
     _runs_option(p)
     p.add_argument("--out", type=Path, default=Path("docs/figures"), help="output folder (docs/figures)")
     p.set_defaults(func=cmd_figures)
+
+    p = sub.add_parser(
+        "ship",
+        help="copy a finished training run into zoo/, weights only, for `eval --run` and `table --trained`",
+        description="Copy a finished run (RUNS/train/<method>-<hash>/) into ZOO/<method>-<hash>/: "
+        "config.json, metrics.csv, finished.json and best.pt (Table I's checkpoint; with --last also "
+        "last.pt), each checkpoint weights-only in fp32 with its sha256. Prints the folder's size and a "
+        "row for zoo/README.md. Never replaces a folder already there.",
+    )
+    p.add_argument("run", type=Path, metavar="RUN_DIR", help="a finished training run")
+    p.add_argument("--zoo", type=Path, default=Path("zoo"), help="where shipped runs live (default zoo/)")
+    p.add_argument("--last", action="store_true", help="also ship last.pt, the final weights")
+    p.set_defaults(func=cmd_ship)
 
     p = sub.add_parser(
         "view",

@@ -26,6 +26,8 @@ import io
 import json
 import multiprocessing
 import os
+import shutil
+import tempfile
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -46,7 +48,7 @@ from .evaluate import (
     git_revision,
     spl_term,
 )
-from .files import atomic_write, end_with_parent, one_line
+from .files import atomic_write, checksum_matches, end_with_parent, one_line
 from .intervals import (
     REPLICATES,
     VERDICTS,
@@ -58,7 +60,14 @@ from .intervals import (
 )
 from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, load_plugin
-from .runs import run_record, train_method, training_kitchens
+from .runs import (
+    TrainError,
+    load_checkpoint,
+    run_record,
+    save_checkpoint,
+    train_method,
+    training_kitchens,
+)
 from .table_spec import (
     CELL_KEYS,
     CELL_TITLES,
@@ -200,6 +209,51 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Pa
         f"row {row_name!r} (seed {record['seed']}): no finished {record['method']} run in {folder} "
         f"trained as the preset says{hint}"
     )
+
+
+# what a shipped checkpoint keeps of a training checkpoint: the weights, their config and the knowledge
+# graph's counts (policy.load_policy's needs), no optimiser, generators or agents: about a third of it
+SHIPPED_KEYS = (
+    "format", "method", "options", "model_config", "kitchens", "seed", "frames", "updates", "covis", "model",
+)  # fmt: skip
+SHIPPED_FILES = ("config.json", "metrics.csv", "finished.json")
+
+
+def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",)) -> Path:
+    """Copy a finished training run into `zoo` (one folder, named as the run) as `--trained` and
+    `eval --run` read it: config.json, metrics.csv, finished.json and each checkpoint (best.pt, Table
+    I's; last.pt with "last") weights-only in fp32 with its sha256. A checkpoint without its checksum, or
+    one that does not match it, is refused; the folder appears whole or not at all, and an existing one
+    is never replaced."""
+    run_dir, zoo = Path(run_dir), Path(zoo)
+    if not (run_dir / "config.json").is_file():
+        raise TableError(f"{run_dir} is not a training run (no config.json)")
+    if not (run_dir / "finished.json").is_file():
+        raise TableError(f"{run_dir} is not finished (no finished.json); ship a run once it has finished")
+    out = zoo / run_dir.name
+    if out.exists():
+        raise TableError(f"{out} exists; a shipped run is never replaced (delete it first to ship again)")
+    zoo.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(dir=zoo, prefix=f".{run_dir.name}-", suffix=".tmp"))
+    try:
+        for name in SHIPPED_FILES:
+            if not (run_dir / name).is_file():
+                raise TableError(f"{run_dir} has no {name}")
+            shutil.copyfile(run_dir / name, staging / name)
+        for name in checkpoints:
+            path = run_dir / f"{name}.pt"
+            if path.is_file() and checksum_matches(path, path.read_bytes()) is None:
+                raise TableError(f"checkpoint {path} has no checksum ({path.name}.sha256); not shipped")
+            try:
+                ck = load_checkpoint(path)
+            except TrainError as e:
+                raise TableError(str(e)) from e
+            save_checkpoint(staging / path.name, {key: ck[key] for key in SHIPPED_KEYS})
+        os.rename(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return out
 
 
 def run_row(

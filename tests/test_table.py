@@ -577,10 +577,16 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     assert not (trained / "eval").exists() and not list(tmp_path.rglob("table1-smoke.md"))
     assert len(list((trained / "train").glob("*/finished.json"))) == 1
 
-    # the zoo: the same runs, one folder each, as if trained by an older revision of the training code
+    # the zoo: the same runs shipped (weights only), as if trained by an older revision of the code
     zoo = tmp_path / "zoo"
     for run in (trained / "train").iterdir():
-        shutil.copytree(run, zoo / run.name)
+        assert main(["ship", str(run), "--zoo", str(zoo)]) == 0
+        assert f"shipped {zoo / run.name}" in capsys.readouterr().out
+        assert sorted(p.name for p in (zoo / run.name).iterdir()) == [
+            "best.pt", "best.pt.sha256", "config.json", "finished.json", "metrics.csv"
+        ]  # fmt: skip
+        shipped_ck = runs.load_checkpoint(zoo / run.name / "best.pt")
+        assert "optimizer" not in shipped_ck and "agents" not in shipped_ck
         config = json.loads((zoo / run.name / "config.json").read_text())
         config["training_code_sha256"], config["git_revision"] = "0" * 64, "0123456789abcdef"
         (zoo / run.name / "config.json").write_text(json.dumps(config))
@@ -608,6 +614,45 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     assert not (elsewhere / "train").exists()
     assert main(smoke + ["--trained", str(tmp_path / "nowhere"), "--runs", str(elsewhere)]) == 2
     assert "no such folder" in capsys.readouterr().err
+
+
+def test_ship_refuses_what_it_cannot_ship_whole_and_never_replaces(tmp_path, capsys):
+    """`ship` takes a finished run with checksummed checkpoints only; each refusal is one line, and
+    leaves the zoo as it was: no half-shipped folder, an existing one untouched."""
+    run = tmp_path / "runs" / "train" / "lstm_a3c-0123456789"
+    run.mkdir(parents=True)
+    zoo = tmp_path / "zoo"
+
+    def ship(*extra) -> str:
+        assert main(["ship", str(run), "--zoo", str(zoo), *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and err.startswith("kgnavbench: error: "), err
+        assert not list(zoo.iterdir())  # nothing shipped, no temporary folder left
+        return err
+
+    assert "not a training run" in ship()
+    (run / "config.json").write_text(json.dumps({"method": "lstm_a3c", "seed": 0, "frames": 10}))
+    assert "is not finished" in ship()
+    (run / "finished.json").write_text(json.dumps({"frames": 10}))
+    assert "has no metrics.csv" in ship()
+    (run / "metrics.csv").write_text("frames\n10\n")
+    assert "best.pt does not exist" in ship()
+    state = {key: 0 for key in ("format", "method", "options", "kitchens", "seed", "updates")}
+    state.update(format=runs.CHECKPOINT_FORMAT, model={}, model_config={}, covis={}, frames=10)
+    runs.save_checkpoint(run / "best.pt", state)
+    (run / "best.pt").write_bytes((run / "best.pt").read_bytes()[:-9] + b"corrupted")
+    assert "does not match its checksum" in ship()
+    runs.save_checkpoint(run / "best.pt", state)
+    (run / "best.pt.sha256").unlink()
+    assert "has no checksum" in ship()
+    runs.save_checkpoint(run / "best.pt", state)
+    assert "last.pt does not exist" in ship("--last")
+    assert main(["ship", str(run), "--zoo", str(zoo)]) == 0
+    assert "(best.pt from 10)" in capsys.readouterr().out
+    before = {p.name: p.read_bytes() for p in (zoo / run.name).iterdir()}
+    assert main(["ship", str(run), "--zoo", str(zoo)]) == 2
+    assert "never replaced" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in (zoo / run.name).iterdir()} == before
 
 
 def test_train_with_a_preset_trains_the_run_the_table_would(tmp_path, capsys):
