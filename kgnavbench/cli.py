@@ -15,7 +15,7 @@
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR] [--workers N]
                      [--jobs | --job N | --worker] [--trained DIR | --train-only] [--device auto|cpu|cuda]
     kgnavbench ship RUN_DIR [--zoo DIR] [--last]
-    kgnavbench figures [--preset quick] [--runs DIR] [--out DIR]
+    kgnavbench figures [--preset quick] [--runs DIR] [--out DIR] [--trained DIR]
     kgnavbench view FILE.rrd
     kgnavbench encoder pretrain [--epochs N] [--samples-per-epoch N] [--shift PX] [--seed S] [--out FILE]
     kgnavbench encoder features [NAME ...]
@@ -330,8 +330,12 @@ def cmd_figures(args: argparse.Namespace) -> int:
 
     arguments.writable_folder(args.runs, "--runs")
     arguments.writable_folder(args.out, "--out")
+    if args.trained is not None and not args.trained.is_dir():
+        raise UsageError(f"--trained {args.trained}: no such folder")
     try:
-        paths = figures_of_table(args.preset, args.runs, args.out, args.spec, progress=print)
+        paths = figures_of_table(
+            args.preset, args.runs, args.out, args.spec, progress=print, trained=args.trained
+        )
     except (FigureError, RecordError, TableError, TrainError) as e:
         raise UsageError(str(e)) from e
     print(f"wrote {', '.join(str(p) for p in paths)}")
@@ -667,11 +671,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="the paper's figures from a Table I preset's runs (PNG)",
         description="Collisions per episode and last-view-shows-target rate on unseen kitchens per "
         "method, a t-SNE of the KG model's third GCN layer, and the training curves, from the runs of "
-        "`kgnavbench table --preset PRESET` (missing runs are made first).",
+        "`kgnavbench table --preset PRESET` (missing runs are trained and evaluated first; with "
+        "--trained DIR, the trained runs come from DIR and a missing one is an error, never trained).",
     )
     p.add_argument("--preset", default="quick", help="the table preset whose runs to draw (default quick)")
     p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
     _runs_option(p)
+    p.add_argument(
+        "--trained",
+        type=Path,
+        metavar="DIR",
+        help="take the preset's trained runs from DIR (zoo/), as `table --trained` does: evaluate what "
+        "is not evaluated in --runs, never train",
+    )
     p.add_argument("--out", type=Path, default=Path("docs/figures"), help="output folder (docs/figures)")
     p.set_defaults(func=cmd_figures)
 

@@ -643,13 +643,22 @@ def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, pro
 
 
 def figures_of_table(
-    preset: str = "quick", runs_dir="runs", out_dir="docs/figures", spec_path=None, progress=print
+    preset: str = "quick",
+    runs_dir="runs",
+    out_dir="docs/figures",
+    spec_path=None,
+    progress=print,
+    trained=None,
 ) -> list[Path]:
     """The figures of a Table I preset's runs (run_table: finished runs are only reloaded, missing
-    ones are trained and evaluated first), from each row's first seed."""
+    ones are trained and evaluated first; with `trained`, a folder such as zoo/, the trained runs come
+    from there and none is trained), from each row's first seed."""
     from . import table, table_spec  # lazily: the table stage imports the trainer
 
     spec = table_spec.load_spec(spec_path) if spec_path else table_spec.load_spec()
-    result = table.run_table(spec, preset, runs_dir, progress)
+    if trained is None:
+        result = table.run_table(spec, preset, runs_dir, progress)
+    else:
+        result = table.run_table(spec, preset, runs_dir, progress, sources=table.Sources(Path(trained)))
     rows = [(r.row.name, r.train_runs[0] or None, r.eval_runs[0]) for r in result.rows]
     return figures(rows, out_dir, progress=progress)

@@ -205,6 +205,11 @@ def test_unwritable_output_folders_are_refused_before_any_work(capsys, tmp_path)
     assert blocker.read_text() == "x" and not list(tmp_path.glob("runs/*"))
 
 
+def test_figures_from_a_trained_folder_that_is_not_there_is_one_line(capsys, tmp_path):
+    code, _, err = run(capsys, "figures", "--trained", str(tmp_path / "nowhere"), "--runs", str(tmp_path))
+    assert_one_line_error(code, err, "--trained", "no such folder")
+
+
 def test_version(capsys):
     code, out, _ = run(capsys, "--version")
     assert code == 0 and out.startswith("kgnavbench 0.")

@@ -368,6 +368,14 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     assert calls == [(spec, "smoke", tmp_path / "runs", notes.append)]
     assert len(notes) == 3  # no training runs: the t-SNE and both curves are skipped
 
+    # --trained: the runs come from that folder (table.Sources), never trained
+    taken = []
+    monkeypatch.setattr(table, "run_table", lambda *args, sources: taken.append(sources) or result)
+    figures.figures_of_table(
+        "smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append, trained=tmp_path
+    )
+    assert taken == [table.Sources(tmp_path)]
+
 
 def test_eval_video_writes_a_video_that_opencv_reads_back(capsys, tmp_path, floorplan1_tasks):
     """`eval --video FILE.mp4`: the recorded episodes as frames (the view and the target beside the
