@@ -451,6 +451,145 @@ def curves_figure(
     return _write_png(path, img)
 
 
+ATTENTION_SIZE = (1200, 560)
+ATTENTION_BARS = 12  # object types shown, the most attended first
+# where an attended type was seen: in the view only, in the target image only, in both (tab10's
+# blue, orange, green, as BGR)
+ATTENDED_IN = (("in the view", PALETTE[0]), ("in the target", PALETTE[1]), ("in both", PALETTE[2]))
+
+
+def attention_figure(
+    view: np.ndarray,
+    target: np.ndarray,
+    attended: list[tuple[str, float, str]],
+    path,
+    title: str,
+    caption: str,
+    size=ATTENTION_SIZE,
+) -> Path:
+    """The paper's attention example: the agent's view and its target image (RGB, upscaled with
+    nearest neighbours, as the network saw them), and beside them the attention weights over object
+    types as horizontal bars, the most attended first (at most ATTENTION_BARS), each bar coloured by
+    where its type was seen (`attended`: (type, weight, one of ATTENDED_IN's names))."""
+    where = dict(ATTENDED_IN)
+    if not attended:
+        raise FigureError("attention_figure needs at least one attended object type")
+    for name, weight, seen_in in attended:
+        if seen_in not in where or not math.isfinite(weight):
+            raise FigureError(f"attended type {name!r}: weight {weight!r} seen {seen_in!r} cannot be drawn")
+    img = _canvas(title, size)
+    width, height = size
+    side = 340
+    for k, (image, label) in enumerate(((view, "the agent's view"), (target, "the target image"))):
+        x0, y0 = 30 + k * (side + 20), 80
+        rgb = np.asarray(image, np.uint8)
+        img[y0 : y0 + side, x0 : x0 + side] = cv2.resize(
+            rgb[:, :, ::-1], (side, side), interpolation=cv2.INTER_NEAREST
+        )
+        cv2.rectangle(img, (x0 - 1, y0 - 1), (x0 + side, y0 + side), INK, 1)
+        _text(img, label, (x0 + side // 2, y0 + side + 12), 0.55, align="centre", valign="top")
+    shown = sorted(attended, key=lambda a: -a[1])[:ATTENTION_BARS]
+    left, right, top = 30 + 2 * (side + 20) + 150, width - 60, 90
+    row = min(28, (height - 150 - top) // len(shown))
+    ticks = _ticks(0.0, max(w for _, w, _ in shown))
+    ax = _Axes(img, left, top, right, top + row * len(shown), (0.0, ticks[-1]), (0.0, float(len(shown))))
+    ax.x_ticks(ticks, "attention weight")
+    for i, (name, weight, seen_in) in enumerate(shown):
+        y = top + i * row
+        x1, _ = ax.px(weight, 0)
+        x1 = max(x1, left + 3)  # a weight near 0 still shows its colour
+        cv2.rectangle(img, (left, y + 4), (x1, y + row - 4), where[seen_in], -1)
+        _text(img, name, (left - 8, y + row // 2), 0.45, align="right", valign="middle")
+        label = f"{weight:.2f}" if weight >= 0.005 else "<0.01"
+        _text(img, label, (x1 + 5, y + row // 2), 0.4, (90, 90, 90), valign="middle")
+    ax.frame()
+    _legend(img, [(n, c, "bar") for n, c in ATTENDED_IN], width - 60, 60)
+    for k, line in enumerate(_wrap(caption, width - 60, 0.5)[:2]):
+        _text(img, line, (30, height - 40 + 20 * k), 0.5, (70, 70, 70))
+    return _write_png(path, img)
+
+
+def attention_example(
+    method: str, run, path, kitchen: str = "FloorPlan1", seed: int = 0, row: str | None = None
+) -> Path:
+    """Draw `attention_figure` from one episode of a trained attention policy (method's plugin, run's
+    best-validation checkpoint, as an evaluation builds it): the first fixed episode of each seen
+    static target of `kitchen` in order, until one succeeds (else the last tried); in it, the step whose
+    attention (weights >= 0.01) reaches types in the most of the three places (view only, target only,
+    both), then the most types (the earliest of those). The policy must have
+    `explain(agent, top)` (kgnavbench's learned policies with attention do)."""
+    from . import evaluate
+    from .env import parallel_env
+    from .kitchens import KITCHEN_NAMES, object_types
+    from .plugins import load_plugin
+    from .tasks import load_tasks
+
+    config = evaluate.EvalConfig(method=method, run=str(run), kitchens=(kitchen,))
+    plugin = load_plugin(method)
+    tasks = load_tasks(kitchen)
+    kitchen_seed = seed * 1000 + KITCHEN_NAMES.index(kitchen)  # evaluate_kitchen's seed
+    policy = plugin.make_policy(
+        plugin.config({}), evaluate.policy_spec(config, kitchen_seed, tasks.graph.views.shape[1])
+    )
+    if not callable(getattr(policy, "explain", None)):
+        raise FigureError(f"{method}'s policy has no explain(agent): no attention to draw")
+    env = parallel_env(kitchen=kitchen, n_agents=1, targets="all", tasks=tasks, features=True)
+    rows = [r for r, t in enumerate(tasks.targets) if t.seen and t.kind == "static"]
+    if not rows:
+        raise FigureError(f"{kitchen} has no seen static target")
+    best = None
+    for r in rows:
+        target = tasks.targets[r]
+        cap = evaluate.episode_cap(evaluate.column_of(tasks.split, target.seen))
+        episode = {"target": target.object_id, "start": target.starts[0], "max_steps": cap}
+        observations, infos = env.reset(options={"episodes": [episode]})
+        (agent,) = env.agents
+        policy.reset(agent)
+        steps, info = [], infos[agent]
+        while env.agents:
+            obs = observations[agent]
+            actions = policy.act(observations, infos)
+            weights = policy.explain(agent, top=len(obs["view_objects"]))["attention"]
+            steps.append((obs["view"], obs["target"], obs["view_objects"], obs["target_objects"], weights))
+            observations, _, terminations, truncations, infos = env.step(actions)
+            info = infos[agent]
+            if terminations[agent] or truncations[agent]:
+                break
+        best = (target, steps, info)
+        if info["success"]:
+            break
+    target, steps, info = best
+    types = {name: i for i, name in enumerate(object_types())}
+
+    def seen_in(name: str, in_view, in_target) -> str:
+        v, g = in_view[types[name]] > 0, in_target[types[name]] > 0
+        return ATTENDED_IN[2 if v and g else 0 if v else 1][0]
+
+    def spread(i: int) -> tuple[int, int, int]:  # places with a weight >= 0.01, types, earliest
+        _, _, in_view, in_target, weights = steps[i]
+        places = {seen_in(n, in_view, in_target) for n, w in weights if w >= 0.01}
+        return len(places), len(weights), -i
+
+    k = max(range(len(steps)), key=spread)
+    view, target_image, in_view, in_target, weights = steps[k]
+    if not weights:
+        raise FigureError(f"{method} attended to nothing in {kitchen}'s episode: no attention to draw")
+
+    outcome = "success" if info["success"] else "failure"
+    return attention_figure(
+        view,
+        target_image,
+        [(name, w, seen_in(name, in_view, in_target)) for name, w in weights],
+        path,
+        f"Attention over object types: {kitchen}, target {target.type} ({target.kind})",
+        f"{row or method} ({Path(run).name}, best.pt): step {k + 1} of {info['episode_length']} ({outcome}), "
+        f"the first step whose attention (weights >= 0.01) reaches the most of the three places, then "
+        f"the most types ({len(weights)}); "
+        f"bars: the "
+        f"{min(len(weights), ATTENTION_BARS)} most attended.",
+    )
+
+
 # ------------------------------------------------------------------------------------------------
 # The paper's figures from the table's runs
 
@@ -553,6 +692,9 @@ def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, pro
       * tsne_gcn.png           a t-SNE (seed) of the third GCN layer's node features of the last row
                                trained with an accumulated knowledge graph, the object types that have
                                a co-visibility edge, each labelled;
+      * attention_example.png  the last row trained with attention: one step of an episode in
+                               FloorPlan1, its view, its target and its attention over object types
+                               (`attention_example`);
       * training_curves.png    validation SR (the training episodes' SR for a run without validation)
                                and training_reward.png mean reward per frame, vs frames, per trained row.
     A figure without data is skipped with a note to `progress`. Returns the paths written."""
@@ -612,6 +754,18 @@ def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, pro
                 size=TSNE_SIZE,
             )
         )
+
+    attention_row = None  # the last row trained with attention: +KG+Attention in Table I
+    for name, train_dir in reversed(trained):
+        found = _kg_checkpoint(train_dir)
+        if found is not None and found[0]["model_config"].get("kg") == "attention":
+            attention_row = (name, train_dir, found[0]["method"])
+            break
+    if attention_row is None:
+        progress("figures: no row trained with attention; attention_example.png skipped")
+    else:
+        name, train_dir, method = attention_row
+        written.append(attention_example(method, train_dir, out_dir / "attention_example.png", row=name))
 
     # validation SR where the run measured it (the checkpoint selection's number), else training SR
     success, reward, validated = {}, {}, 0

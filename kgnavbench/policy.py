@@ -151,13 +151,15 @@ class LearnedPolicy:
         """The FF model's scene-specific layer: its own for a training kitchen, the first elsewhere."""
         return self.training_kitchens.index(kitchen) if kitchen in self.training_kitchens else 0
 
-    def explain(self, agent: str) -> dict:
-        """What the last act() attended to for this agent: the top-3 object types with their weights
-        (KG + attention models; an empty list for the others, or an agent the last act() did not see)."""
+    def explain(self, agent: str, top: int = 3) -> dict:
+        """What the last act() attended to for this agent: the `top` object types with their weights,
+        most attended first, those with weight 0 left out (KG + attention models; an empty list for the
+        others, or an agent the last act() did not see)."""
         if self.attention is None or agent not in self.attention[0]:
             return {"attention": []}
         agents, attention = self.attention
-        weights, types = attention[agents.index(agent)].float().topk(3)
+        row = attention[agents.index(agent)].float()
+        weights, types = row.topk(min(top, len(row)))
         pairs = zip(types.tolist(), weights.tolist())
         return {"attention": [(self.type_names[t], float(w)) for t, w in pairs if w > 0]}
 

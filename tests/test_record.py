@@ -320,10 +320,14 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
     notes = []
     paths = figures.figures(rows, tmp_path / "figures", progress=notes.append)
     names = [p.name for p in paths]
-    assert names == ["collisions_unseen.png", "tsne_gcn.png", "training_curves.png", "training_reward.png"]
+    assert names == [
+        "collisions_unseen.png", "tsne_gcn.png", "attention_example.png", "training_curves.png",
+        "training_reward.png",
+    ]  # fmt: skip
     assert not notes
+    sizes = {"tsne_gcn.png": figures.TSNE_SIZE, "attention_example.png": figures.ATTENTION_SIZE}
     for p in paths:
-        assert _is_figure(p, figures.TSNE_SIZE if p.name == "tsne_gcn.png" else figures.FIGURE_SIZE), p
+        assert _is_figure(p, sizes.get(p.name, figures.FIGURE_SIZE)), p
 
     # the GCN features the t-SNE embeds: the checkpoint's network over its own co-visibility graph
     h, adjacency = figures.gcn_node_features(figures._kg_checkpoint(run)[0])
@@ -333,7 +337,7 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
     notes.clear()
     paths = figures.figures(rows[:2], tmp_path / "fewer", progress=notes.append)
     assert [p.name for p in paths] == ["collisions_unseen.png"]
-    assert len(notes) == 3 and "tsne_gcn.png skipped" in notes[0]
+    assert len(notes) == 4 and "tsne_gcn.png skipped" in notes[0] and "attention" in notes[1]
 
     with pytest.raises(FigureError, match="no such evaluation run directory"):
         figures.figures([("LSTM A3C", None, str(tmp_path / "missing"))], tmp_path / "x")
@@ -343,6 +347,18 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
     with pytest.raises(FigureError, match="line 1"):
         figures.figures(rows, tmp_path / "x")
     assert not (tmp_path / "x").exists()  # bad input fails before any figure is written
+
+
+def test_the_attention_figure_refuses_what_it_cannot_draw(tmp_path):
+    view = np.zeros((84, 84, 3), np.uint8)
+    path = figures.attention_figure(
+        view, view, [("Fridge", 0.7, "in the view"), ("Mug", 0.3, "in both")], tmp_path / "a.png", "t", "c"
+    )
+    assert _is_figure(path, figures.ATTENTION_SIZE)
+    for attended, named in (([], "at least one"), ([("Mug", 0.5, "nowhere")], "'Mug'")):
+        with pytest.raises(FigureError, match=named):
+            figures.attention_figure(view, view, attended, tmp_path / "b.png", "t", "c")
+        assert not (tmp_path / "b.png").exists()
 
 
 def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
@@ -366,7 +382,7 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     paths = figures.figures_of_table("smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append)
     assert [p.name for p in paths] == ["collisions_unseen.png"]
     assert calls == [(spec, "smoke", tmp_path / "runs", notes.append)]
-    assert len(notes) == 3  # no training runs: the t-SNE and both curves are skipped
+    assert len(notes) == 4  # no training runs: the t-SNE, the attention and both curves are skipped
 
     # --trained: the runs come from that folder (table.Sources), never trained
     taken = []
