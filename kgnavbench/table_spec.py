@@ -21,7 +21,9 @@ from .plugins import available
 from .tasks import EPISODES_PER_TARGET
 
 SPEC_FILE = Path(__file__).resolve().parent.parent / "tables" / "table1.toml"
-CHECKPOINT_RULES = ("best_val_sr",)
+# which checkpoint of a run a table evaluates: "best_val_sr", Table I's rule (the run's best.pt: the best
+# validation SR, the latest within one standard error of it); "last", the run's final weights (last.pt)
+CHECKPOINT_RULES = ("best_val_sr", "last")
 PRESET_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,39}")
 # Table I's five cells (column, kind), in the paper's order. The sixth pair of evaluate's columns and
 # kinds, actionable targets in seen kitchens that are unseen, never has an episode: every actionable
@@ -73,6 +75,7 @@ class Preset:
     eval_kitchens: tuple[str, ...]  # empty: Table I's kitchens (train + test)
     options: dict[str, str]  # training options for every learned row (`set`)
     rows: tuple[str, ...] = ()  # the rows this preset runs, by name; empty: every row of the spec
+    checkpoint: str = ""  # the checkpoint rule of its evaluations (CHECKPOINT_RULES); empty: the protocol's
 
     @property
     def threads(self) -> int:
@@ -193,7 +196,10 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
         _unknown(
             where,
             t,
-            {"description", "frames", "episodes", "seeds", "train_kitchens", "eval_kitchens", "set", "rows"},
+            {
+                "description", "frames", "episodes", "seeds", "train_kitchens", "eval_kitchens", "set",
+                "rows", "checkpoint",
+            },  # fmt: skip
         )
         preset = Preset(
             name=name,
@@ -209,7 +215,12 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
             ),
             options=_options(f"{where}.set", _field(where, t, "set", dict, {}, required=False)),
             rows=tuple(_field(where, t, "rows", list, [], required=False)),
+            checkpoint=_field(where, t, "checkpoint", str, "", required=False),
         )
+        if preset.checkpoint and preset.checkpoint not in CHECKPOINT_RULES:
+            raise TableError(
+                f"{where}.checkpoint = {preset.checkpoint!r}: choose one of {CHECKPOINT_RULES}"
+            )
         if preset.frames < 1:
             raise TableError(f"{where}.frames = {preset.frames} must be at least 1")
         if not 1 <= preset.episodes <= EPISODES_PER_TARGET:

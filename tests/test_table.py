@@ -93,6 +93,13 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
     assert control.options == {"il": "true", "tse": "true", "detections": "true"}
     # the paper preset: the paper's nine rows and the control row (issue 25), in the paper's order
     assert list(spec.presets["paper"].rows) == [*PAPER_ROWS, "+IL+TSE, object detections, no graph"]
+    # paper-last: the paper preset's runs of two rows, tested with their last.pt; the same runs only
+    # while every field that decides them is the paper preset's
+    paper, last = spec.presets["paper"], spec.presets["paper-last"]
+    assert last.checkpoint == "last" and paper.checkpoint == "" and set(last.rows) <= set(paper.rows)
+    assert dataclasses.replace(last, name="paper", description="", rows=(), checkpoint="") == (
+        dataclasses.replace(paper, description="", rows=())
+    )
 
 
 GOOD = SPEC_FILE.read_text()
@@ -109,7 +116,11 @@ assert A_COMPARISON in GOOD
         ),
         (lambda t: t.replace("seen_cap = 100", "seen_cap = 50"), "seen_cap/unseen_cap"),
         (lambda t: t.replace("stop_ends = true", 'stop_ends = "yes"'), "protocol.stop_ends"),
-        (lambda t: t.replace('checkpoint = "best_val_sr"', 'checkpoint = "last"'), "protocol.checkpoint"),
+        (lambda t: t.replace('checkpoint = "best_val_sr"', 'checkpoint = "first"'), "protocol.checkpoint"),
+        (
+            lambda t: t.replace("[presets.smoke]\n", '[presets.smoke]\ncheckpoint = "best"\n'),
+            "presets.smoke.checkpoint",
+        ),
         (lambda t: t.replace("frames = 2_000_000", "frames = -5"), "presets.quick.frames"),
         (lambda t: t.replace("frames = 2_000_000", 'frames = "lots"'), "presets.quick.frames"),
         (lambda t: t.replace("episodes = 20\n", "episodes = 101\n"), "presets.quick.episodes"),
@@ -653,6 +664,36 @@ def test_ship_refuses_what_it_cannot_ship_whole_and_never_replaces(tmp_path, cap
     assert main(["ship", str(run), "--zoo", str(zoo)]) == 2
     assert "never replaced" in capsys.readouterr().err
     assert {p.name: p.read_bytes() for p in (zoo / run.name).iterdir()} == before
+
+
+def test_a_preset_with_checkpoint_last_evaluates_each_runs_final_weights(tmp_path, capsys):
+    """A preset's `checkpoint = "last"` evaluates last.pt, not best.pt, and its caption says so; from
+    a zoo that lacks last.pt it stops with one line naming the file."""
+    text = SPEC_FILE.read_text()
+    head, tail = text.split("[presets.smoke]\n", 1)
+    smoke_block = tail.split("\n\n", 1)[0]
+    last_block = f'[presets.smoke-last]\ncheckpoint = "last"\nrows = ["LSTM A3C"]\n{smoke_block}\n\n'
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(f'{head}{last_block}[presets.smoke]\nrows = ["LSTM A3C"]\n{tail}')
+    runs_dir = tmp_path / "runs"
+    for preset in ("smoke", "smoke-last"):
+        argv = ["table", "--spec", str(spec_path), "--preset", preset, "--workers", "1"]
+        assert main(argv + ["--runs", str(runs_dir), "--out", str(tmp_path)]) == 0
+    (run,) = (runs_dir / "train").iterdir()  # one run: both presets train the same
+    for preset in ("smoke", "smoke-last"):
+        caption = (tmp_path / f"table1-{preset}.md").read_text()
+        assert ("final weights (last.pt)" in caption) == (preset == "smoke-last")
+    # the weights each evaluation froze: best.pt's and last.pt's (one evaluation where they are equal)
+    tested = {(d / "weights.pt").read_bytes() for d in (runs_dir / "eval").iterdir()}
+    assert tested == {(run / "best.pt").read_bytes(), (run / "last.pt").read_bytes()}
+    capsys.readouterr()
+
+    zoo = tmp_path / "zoo"
+    assert main(["ship", str(run), "--zoo", str(zoo)]) == 0  # best.pt only
+    argv = ["table", "--spec", str(spec_path), "--preset", "smoke-last", "--trained", str(zoo)]
+    assert main(argv + ["--runs", str(tmp_path / "other"), "--out", str(tmp_path / "other")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "last.pt" in err, err
 
 
 def test_train_with_a_preset_trains_the_run_the_table_would(tmp_path, capsys):
