@@ -328,13 +328,14 @@ def cmd_figures(args: argparse.Namespace) -> int:
     from .runs import TrainError
     from .table_spec import TableError
 
-    arguments.writable_folder(args.runs, "--runs")
-    arguments.writable_folder(args.out, "--out")
     if args.trained is not None and not args.trained.is_dir():
         raise UsageError(f"--trained {args.trained}: no such folder")
+    device = arguments.device_name(args.device)
+    arguments.writable_folder(args.runs, "--runs")
+    arguments.writable_folder(args.out, "--out")
     try:
         paths = figures_of_table(
-            args.preset, args.runs, args.out, args.spec, progress=print, trained=args.trained
+            args.preset, args.runs, args.out, args.spec, print, trained=args.trained, device=device
         )
     except (FigureError, RecordError, TableError, TrainError) as e:
         raise UsageError(str(e)) from e
@@ -432,25 +433,22 @@ def cmd_table(args: argparse.Namespace) -> int:
 
 
 def cmd_ship(args: argparse.Namespace) -> int:
-    from .runs import TrainError, load_checkpoint
     from .table import ship_run
     from .table_spec import TableError
 
     arguments.writable_folder(args.zoo, "--zoo")
     try:
-        out = ship_run(args.run, args.zoo, ("best", "last") if args.last else ("best",))
-        config = json.loads((out / "config.json").read_text())
-        finished = json.loads((out / "finished.json").read_text())
-        best_frames = load_checkpoint(out / "best.pt")["frames"]
-    except (TableError, TrainError, OSError, json.JSONDecodeError) as e:
+        shipped = ship_run(args.run, args.zoo, ("best", "last") if args.last else ("best",))
+    except (TableError, OSError) as e:
         raise UsageError(str(e)) from e
-    size = sum(f.stat().st_size for f in out.iterdir())
-    total = sum(f.stat().st_size for f in args.zoo.rglob("*") if f.is_file())
-    print(f"shipped {out}: {size / 1e6:.1f} MB ({args.zoo} now {total / 1e6:.1f} MB)")
-    print("its row for zoo/README.md:")
+    size = sum(f.stat().st_size for f in shipped.folder.iterdir())
+    total = sum(
+        f.stat().st_size for f in args.zoo.rglob("*") if f.is_file() and not f.parent.name.startswith(".")
+    )
+    print(f"shipped {shipped.folder}: {size / 1e6:.1f} MB ({args.zoo} now {total / 1e6:.1f} MB)")
     print(
-        f"| `{out.name}` | {config['method']} | seed {config['seed']} | "
-        f"{finished['frames']:,} (best.pt from {best_frames:,}) |"
+        f"for zoo/README.md: `{shipped.folder.name}`, {shipped.method} seed {shipped.seed}, "
+        f"{shipped.frames:,} frames (best.pt from {shipped.best_frames:,})"
     )
     return 0
 
@@ -684,6 +682,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="take the preset's trained runs from DIR (zoo/), as `table --trained` does: evaluate what "
         "is not evaluated in --runs, never train",
     )
+    _device_option(p)
     p.add_argument("--out", type=Path, default=Path("docs/figures"), help="output folder (docs/figures)")
     p.set_defaults(func=cmd_figures)
 

@@ -192,6 +192,12 @@ def kitchen_episodes(tasks: KitchenTasks, per_target: int) -> list[tuple[str, li
     return out
 
 
+def kitchen_seed(seed: int, kitchen: str) -> int:
+    """The policy's seed in one kitchen of an evaluation with `seed`: the same per kitchen, whatever
+    else is evaluated, so a kitchen's results resume and a recording replays its episodes."""
+    return seed * 1000 + KITCHEN_NAMES.index(kitchen)
+
+
 def evaluate_kitchen(
     plugin,
     plugin_config,
@@ -204,7 +210,7 @@ def evaluate_kitchen(
     column's cap), so a batched policy sees them all in one act() call. `checkpoint`: the weights a
     learned policy loads (the evaluation's frozen copy)."""
     tasks = load_tasks(kitchen)
-    seed = config.seed * 1000 + KITCHEN_NAMES.index(kitchen)  # the same per kitchen, resumable
+    seed = kitchen_seed(config.seed, kitchen)
     spec = policy_spec(config, seed, tasks.graph.views.shape[1], checkpoint)
     policy = plugin.make_policy(plugin_config, spec)
     columns, episodes = [], []

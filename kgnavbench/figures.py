@@ -453,9 +453,14 @@ def curves_figure(
 
 ATTENTION_SIZE = (1200, 560)
 ATTENTION_BARS = 12  # object types shown, the most attended first
-# where an attended type was seen: in the view only, in the target image only, in both (tab10's
-# blue, orange, green, as BGR)
-ATTENDED_IN = (("in the view", PALETTE[0]), ("in the target", PALETTE[1]), ("in both", PALETTE[2]))
+# where an attended type was seen: in the view only, in the target image only, in both, in neither (a
+# softmax over all nodes weighs those too); tab10's blue, orange, green and grey, as BGR
+ATTENDED_IN = (
+    ("in the view", PALETTE[0]),
+    ("in the target", PALETTE[1]),
+    ("in both", PALETTE[2]),
+    ("in neither", PALETTE[7]),
+)
 
 
 def attention_figure(
@@ -503,41 +508,48 @@ def attention_figure(
         label = f"{weight:.2f}" if weight >= 0.005 else "<0.01"
         _text(img, label, (x1 + 5, y + row // 2), 0.4, (90, 90, 90), valign="middle")
     ax.frame()
-    _legend(img, [(n, c, "bar") for n, c in ATTENDED_IN], width - 60, 60)
+    present = {seen_in for _, _, seen_in in attended}
+    _legend(img, [(n, c, "bar") for n, c in ATTENDED_IN if n in present], width - 60, 60)
     for k, line in enumerate(_wrap(caption, width - 60, 0.5)[:2]):
         _text(img, line, (30, height - 40 + 20 * k), 0.5, (70, 70, 70))
     return _write_png(path, img)
 
 
-def attention_example(
-    method: str, run, path, kitchen: str = "FloorPlan1", seed: int = 0, row: str | None = None
-) -> Path:
-    """Draw `attention_figure` from one episode of a trained attention policy (method's plugin, run's
-    best-validation checkpoint, as an evaluation builds it): the first fixed episode of each seen
-    static target of `kitchen` in order, until one succeeds (else the last tried); in it, the step whose
-    attention (weights >= 0.01) reaches types in the most of the three places (view only, target only,
-    both), then the most types (the earliest of those). The policy must have
-    `explain(agent, top)` (kgnavbench's learned policies with attention do)."""
+def attention_step(
+    method: str, run, kitchen: str = "FloorPlan1", seed: int = 0, row: str | None = None
+) -> dict:
+    """One step of a trained attention policy, as `attention_figure`'s arguments (all but the path): the
+    method's plugin with the run's best-validation checkpoint, built as an evaluation builds it; the
+    first fixed episode of each seen static target of `kitchen` in order, until one succeeds (else the
+    last tried); in it, the step whose attention (weights >= 0.01) reaches types in the most of the
+    places (view only, target only, both, neither), then the most types (the earliest of those). The
+    policy must have `explain(agent, top)`, as kgnavbench's learned policies with attention do."""
     from . import evaluate
     from .env import parallel_env
-    from .kitchens import KITCHEN_NAMES, object_types
+    from .kitchens import object_types
     from .plugins import load_plugin
     from .tasks import load_tasks
 
     config = evaluate.EvalConfig(method=method, run=str(run), kitchens=(kitchen,))
     plugin = load_plugin(method)
     tasks = load_tasks(kitchen)
-    kitchen_seed = seed * 1000 + KITCHEN_NAMES.index(kitchen)  # evaluate_kitchen's seed
-    policy = plugin.make_policy(
-        plugin.config({}), evaluate.policy_spec(config, kitchen_seed, tasks.graph.views.shape[1])
-    )
-    if not callable(getattr(policy, "explain", None)):
-        raise FigureError(f"{method}'s policy has no explain(agent): no attention to draw")
+    spec = evaluate.policy_spec(config, evaluate.kitchen_seed(seed, kitchen), tasks.graph.views.shape[1])
+    policy = plugin.make_policy(plugin.config({}), spec)
+    types = {name: i for i, name in enumerate(object_types())}
+
+    def explained(agent: str) -> list[tuple[str, float]]:
+        try:
+            return policy.explain(agent, top=len(types))["attention"]
+        except (AttributeError, TypeError, KeyError) as e:
+            raise FigureError(
+                f"{method}'s policy has no explain(agent, top) -> {{'attention': [(type, weight), ...]}} "
+                f"({type(e).__name__}: {first_line(e)}): no attention to draw"
+            ) from e
+
     env = parallel_env(kitchen=kitchen, n_agents=1, targets="all", tasks=tasks, features=True)
     rows = [r for r, t in enumerate(tasks.targets) if t.seen and t.kind == "static"]
     if not rows:
         raise FigureError(f"{kitchen} has no seen static target")
-    best = None
     for r in rows:
         target = tasks.targets[r]
         cap = evaluate.episode_cap(evaluate.column_of(tasks.split, target.seen))
@@ -549,21 +561,18 @@ def attention_example(
         while env.agents:
             obs = observations[agent]
             actions = policy.act(observations, infos)
-            weights = policy.explain(agent, top=len(obs["view_objects"]))["attention"]
-            steps.append((obs["view"], obs["target"], obs["view_objects"], obs["target_objects"], weights))
+            seen = (obs["view"], obs["target"], obs["view_objects"], obs["target_objects"])
+            steps.append((*seen, explained(agent)))
             observations, _, terminations, truncations, infos = env.step(actions)
             info = infos[agent]
             if terminations[agent] or truncations[agent]:
                 break
-        best = (target, steps, info)
         if info["success"]:
             break
-    target, steps, info = best
-    types = {name: i for i, name in enumerate(object_types())}
 
     def seen_in(name: str, in_view, in_target) -> str:
         v, g = in_view[types[name]] > 0, in_target[types[name]] > 0
-        return ATTENDED_IN[2 if v and g else 0 if v else 1][0]
+        return ATTENDED_IN[2 if v and g else 0 if v else 1 if g else 3][0]
 
     def spread(i: int) -> tuple[int, int, int]:  # places with a weight >= 0.01, types, earliest
         _, _, in_view, in_target, weights = steps[i]
@@ -574,20 +583,24 @@ def attention_example(
     view, target_image, in_view, in_target, weights = steps[k]
     if not weights:
         raise FigureError(f"{method} attended to nothing in {kitchen}'s episode: no attention to draw")
-
     outcome = "success" if info["success"] else "failure"
-    return attention_figure(
-        view,
-        target_image,
-        [(name, w, seen_in(name, in_view, in_target)) for name, w in weights],
-        path,
-        f"Attention over object types: {kitchen}, target {target.type} ({target.kind})",
-        f"{row or method} ({Path(run).name}, best.pt): step {k + 1} of {info['episode_length']} ({outcome}), "
-        f"the first step whose attention (weights >= 0.01) reaches the most of the three places, then "
-        f"the most types ({len(weights)}); "
-        f"bars: the "
+    return {
+        "view": view,
+        "target": target_image,
+        "attended": [(name, w, seen_in(name, in_view, in_target)) for name, w in weights],
+        "title": f"Attention over object types: {kitchen}, target {target.type} ({target.kind})",
+        "caption": f"{row or method} ({Path(run).name}, best.pt): step {k + 1} of "
+        f"{info['episode_length']} ({outcome}), the first step whose attention (weights >= 0.01) "
+        f"reaches the most places, then the most types ({len(weights)}); bars: the "
         f"{min(len(weights), ATTENTION_BARS)} most attended.",
-    )
+    }
+
+
+def attention_example(
+    method: str, run, path, kitchen: str = "FloorPlan1", seed: int = 0, row: str | None = None
+) -> Path:
+    """`attention_figure` of `attention_step` into `path`."""
+    return attention_figure(path=path, **attention_step(method, run, kitchen, seed, row))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -664,6 +677,24 @@ def _kg_checkpoint(train_dir: Path) -> tuple[dict, Path] | None:
     return ck, path
 
 
+def _attention_model(train_dir: Path) -> tuple[str, str] | None:
+    """(method, attention_nodes) of a training run whose best checkpoint has a model with attention
+    over its knowledge graph, else None (no best.pt yet: nothing an evaluation would test)."""
+    from .runs import TrainError, load_checkpoint  # lazily, as above
+
+    path = train_dir / "best.pt"
+    if not path.exists():
+        return None
+    try:
+        ck = load_checkpoint(path)
+    except TrainError as e:
+        raise FigureError(str(e)) from e
+    config = ck["model_config"]
+    if config.get("kg") != "attention":
+        return None
+    return str(ck.get("method")), str(config.get("attention_nodes", "visible"))
+
+
 def gcn_node_features(ck: dict, where="checkpoint") -> tuple[torch.Tensor, torch.Tensor]:
     """The third GCN layer's node features H (125, d) of a KG checkpoint over its accumulated
     co-visibility graph, and that graph's 0/1 adjacency (125, 125)."""
@@ -711,6 +742,15 @@ def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, pro
             train_dir = _run_dir(train_dir, "training")
             metrics[name] = read_metrics(train_dir / "metrics.csv")
             trained.append((name, train_dir))
+    # the attention example's episode, before any figure is written: +KG+Attention in Table I, the
+    # last row trained with attention over the visible nodes (else over all of them)
+    attention = None
+    candidates = [(name, train_dir, _attention_model(train_dir)) for name, train_dir in trained]
+    candidates = [(name, d, found) for name, d, found in candidates if found is not None]
+    candidates.sort(key=lambda c: c[2][1] == "visible")  # stable: the table's order within each kind
+    if candidates:
+        name, train_dir, (method, _) = candidates[-1]
+        attention = attention_step(method, train_dir, seed=seed, row=name)
     written = []
 
     if unseen:
@@ -755,17 +795,10 @@ def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, pro
             )
         )
 
-    attention_row = None  # the last row trained with attention: +KG+Attention in Table I
-    for name, train_dir in reversed(trained):
-        found = _kg_checkpoint(train_dir)
-        if found is not None and found[0]["model_config"].get("kg") == "attention":
-            attention_row = (name, train_dir, found[0]["method"])
-            break
-    if attention_row is None:
+    if attention is None:
         progress("figures: no row trained with attention; attention_example.png skipped")
     else:
-        name, train_dir, method = attention_row
-        written.append(attention_example(method, train_dir, out_dir / "attention_example.png", row=name))
+        written.append(attention_figure(path=out_dir / "attention_example.png", **attention))
 
     # validation SR where the run measured it (the checkpoint selection's number), else training SR
     success, reward, validated = {}, {}, 0
@@ -803,6 +836,7 @@ def figures_of_table(
     spec_path=None,
     progress=print,
     trained=None,
+    device: str = "cpu",
 ) -> list[Path]:
     """The figures of a Table I preset's runs (run_table: finished runs are only reloaded, missing
     ones are trained and evaluated first; with `trained`, a folder such as zoo/, the trained runs come
@@ -810,9 +844,10 @@ def figures_of_table(
     from . import table, table_spec  # lazily: the table stage imports the trainer
 
     spec = table_spec.load_spec(spec_path) if spec_path else table_spec.load_spec()
-    if trained is None:
+    if trained is None and device == "cpu":
         result = table.run_table(spec, preset, runs_dir, progress)
-    else:
-        result = table.run_table(spec, preset, runs_dir, progress, sources=table.Sources(Path(trained)))
+    else:  # a run trained on CUDA is another run (its device is in its config): the table's, as asked
+        sources = table.Sources(None if trained is None else Path(trained))
+        result = table.run_table(spec, preset, runs_dir, progress, device=device, sources=sources)
     rows = [(r.row.name, r.train_runs[0] or None, r.eval_runs[0]) for r in result.rows]
     return figures(rows, out_dir, progress=progress)

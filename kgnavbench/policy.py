@@ -159,7 +159,7 @@ class LearnedPolicy:
             return {"attention": []}
         agents, attention = self.attention
         row = attention[agents.index(agent)].float()
-        weights, types = row.topk(min(top, len(row)))
+        weights, types = row.topk(max(0, min(top, len(row))))
         pairs = zip(types.tolist(), weights.tolist())
         return {"attention": [(self.type_names[t], float(w)) for t, w in pairs if w > 0]}
 

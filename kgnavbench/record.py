@@ -43,7 +43,6 @@ import rerun.blueprint as rrb
 from . import evaluate
 from .env import parallel_env
 from .graph import MOVES
-from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, guarded, load_plugin
 from .render import top_down_map
 from .tasks import load_task_file, load_tasks
@@ -305,7 +304,7 @@ def record_episodes(
         for kitchen in dict.fromkeys(k for k, _ in chosen):
             tasks = load_tasks(kitchen)
             graph = tasks.graph
-            kitchen_seed = seed * 1000 + KITCHEN_NAMES.index(kitchen)  # evaluate_kitchen's seed
+            kitchen_seed = evaluate.kitchen_seed(seed, kitchen)
             spec = _policy_spec(config, kitchen_seed, graph.views.shape[1], checkpoint)
             policy = plugin.make_policy(plugin_config, spec)
             if rec is None and path is not None:  # the layout: whether the policy can explain itself

@@ -48,7 +48,7 @@ from .evaluate import (
     git_revision,
     spl_term,
 )
-from .files import atomic_write, checksum_matches, end_with_parent, one_line
+from .files import atomic_write, checksum_matches, end_with_parent, first_line, one_line
 from .intervals import (
     REPLICATES,
     VERDICTS,
@@ -173,7 +173,11 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Pa
     used with a line that says from which revision."""
     want = {key: record[key] for key in TRAINED_RUN_KEYS}
     nearest: tuple[int, str] | None = None  # (keys that differ, which) of the closest run, for the error
-    candidates = sorted({*folder.glob("*/config.json"), *folder.glob("train/*/config.json")})
+    candidates = sorted(
+        path
+        for path in {*folder.glob("*/config.json"), *folder.glob("train/*/config.json")}
+        if not path.parent.name.startswith(".")  # a staging folder `ship_run` left, never a run
+    )
     for config_path in candidates:
         try:
             config = json.loads(config_path.read_text())
@@ -212,48 +216,88 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Pa
 
 
 # what a shipped checkpoint keeps of a training checkpoint: the weights, their config and the knowledge
-# graph's counts (policy.load_policy's needs), no optimiser, generators or agents: about a third of it
+# graph's counts (policy.load_policy's needs; the keys of train.Trainer.policy_state), no optimiser,
+# generators or agents: about a third of it
 SHIPPED_KEYS = (
     "format", "method", "options", "model_config", "kitchens", "seed", "frames", "updates", "covis", "model",
 )  # fmt: skip
+# finished.json last: a staging folder left by a killed ship is never a finished run
 SHIPPED_FILES = ("config.json", "metrics.csv", "finished.json")
 
 
-def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",)) -> Path:
+@dataclass(frozen=True)
+class Shipped:
+    """A run shipped into a zoo: its folder and what zoo/README.md lists of it."""
+
+    folder: Path
+    method: str
+    seed: int
+    frames: int  # trained
+    best_frames: int  # best.pt's
+
+
+def _json_record(path: Path, keys: tuple[str, ...]) -> dict:
+    """A run's JSON file as an object holding `keys`, or a TableError naming the file."""
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise TableError(f"{path.parent} has no {path.name}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise TableError(f"{path} is unreadable ({type(e).__name__}: {one_line(str(e))})") from e
+    missing = [key for key in keys if not isinstance(record, dict) or key not in record]
+    if missing:
+        raise TableError(f"{path} is not a run's {path.name}: no {', '.join(missing)}")
+    return record
+
+
+def _shipped_checkpoint(path: Path) -> dict:
+    """The weights-only copy of a run's checkpoint (SHIPPED_KEYS), or a TableError naming the file."""
+    if path.is_file() and checksum_matches(path, path.read_bytes()) is None:
+        raise TableError(f"checkpoint {path} has no checksum ({path.name}.sha256); not shipped")
+    try:
+        ck = load_checkpoint(path)
+    except TrainError as e:
+        raise TableError(f"{first_line(e).split('; delete')[0]}; not shipped") from e
+    missing = [key for key in SHIPPED_KEYS if key not in ck]
+    if missing:
+        raise TableError(f"checkpoint {path} has no {', '.join(missing)}; not shipped")
+    return {key: ck[key] for key in SHIPPED_KEYS}
+
+
+def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",)) -> Shipped:
     """Copy a finished training run into `zoo` (one folder, named as the run) as `--trained` and
     `eval --run` read it: config.json, metrics.csv, finished.json and each checkpoint (best.pt, Table
-    I's; last.pt with "last") weights-only in fp32 with its sha256. A checkpoint without its checksum, or
-    one that does not match it, is refused; the folder appears whole or not at all, and an existing one
-    is never replaced."""
+    I's; last.pt with "last") weights-only, as trained (fp32), with its sha256. A checkpoint without its
+    checksum, or one that does not match it, is refused, as is a run whose JSON files do not read; the
+    folder appears whole or not at all (it is staged in a hidden folder beside it, which `trained_run`
+    skips), and an existing one is never replaced."""
     run_dir, zoo = Path(run_dir), Path(zoo)
     if not (run_dir / "config.json").is_file():
         raise TableError(f"{run_dir} is not a training run (no config.json)")
     if not (run_dir / "finished.json").is_file():
         raise TableError(f"{run_dir} is not finished (no finished.json); ship a run once it has finished")
+    config = _json_record(run_dir / "config.json", ("method", "seed"))
+    finished = _json_record(run_dir / "finished.json", ("frames",))
+    if not (run_dir / "metrics.csv").is_file():
+        raise TableError(f"{run_dir} has no metrics.csv")
+    weights = {name: _shipped_checkpoint(run_dir / f"{name}.pt") for name in checkpoints}
     out = zoo / run_dir.name
     if out.exists():
         raise TableError(f"{out} exists; a shipped run is never replaced (delete it first to ship again)")
     zoo.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(dir=zoo, prefix=f".{run_dir.name}-", suffix=".tmp"))
     try:
+        os.chmod(staging, 0o755)  # mkdtemp's folder is private; a zoo folder is read by everyone
+        for name, state in weights.items():
+            save_checkpoint(staging / f"{name}.pt", state)
         for name in SHIPPED_FILES:
-            if not (run_dir / name).is_file():
-                raise TableError(f"{run_dir} has no {name}")
             shutil.copyfile(run_dir / name, staging / name)
-        for name in checkpoints:
-            path = run_dir / f"{name}.pt"
-            if path.is_file() and checksum_matches(path, path.read_bytes()) is None:
-                raise TableError(f"checkpoint {path} has no checksum ({path.name}.sha256); not shipped")
-            try:
-                ck = load_checkpoint(path)
-            except TrainError as e:
-                raise TableError(str(e)) from e
-            save_checkpoint(staging / path.name, {key: ck[key] for key in SHIPPED_KEYS})
         os.rename(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    return out
+    best = weights["best"]["frames"] if "best" in weights else None
+    return Shipped(out, str(config["method"]), config["seed"], finished["frames"], best)
 
 
 def run_row(

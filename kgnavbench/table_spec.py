@@ -197,8 +197,15 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
             where,
             t,
             {
-                "description", "frames", "episodes", "seeds", "train_kitchens", "eval_kitchens", "set",
-                "rows", "checkpoint",
+                "description",
+                "frames",
+                "episodes",
+                "seeds",
+                "train_kitchens",
+                "eval_kitchens",
+                "set",
+                "rows",
+                "checkpoint",
             },  # fmt: skip
         )
         preset = Preset(
@@ -218,9 +225,7 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
             checkpoint=_field(where, t, "checkpoint", str, "", required=False),
         )
         if preset.checkpoint and preset.checkpoint not in CHECKPOINT_RULES:
-            raise TableError(
-                f"{where}.checkpoint = {preset.checkpoint!r}: choose one of {CHECKPOINT_RULES}"
-            )
+            raise TableError(f"{where}.checkpoint = {preset.checkpoint!r}: choose one of {CHECKPOINT_RULES}")
         if preset.frames < 1:
             raise TableError(f"{where}.frames = {preset.frames} must be at least 1")
         if not 1 <= preset.episodes <= EPISODES_PER_TARGET:

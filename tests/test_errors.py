@@ -206,8 +206,12 @@ def test_unwritable_output_folders_are_refused_before_any_work(capsys, tmp_path)
 
 
 def test_figures_from_a_trained_folder_that_is_not_there_is_one_line(capsys, tmp_path):
-    code, _, err = run(capsys, "figures", "--trained", str(tmp_path / "nowhere"), "--runs", str(tmp_path))
+    out, runs = tmp_path / "figures", tmp_path / "runs"
+    code, _, err = run(
+        capsys, "figures", "--trained", str(tmp_path / "nowhere"), "--runs", str(runs), "--out", str(out)
+    )
     assert_one_line_error(code, err, "--trained", "no such folder")
+    assert not out.exists() and not runs.exists()  # refused before any folder is made
 
 
 def test_version(capsys):

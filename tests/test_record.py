@@ -7,6 +7,7 @@ import subprocess
 import sys
 import textwrap
 from collections import Counter
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -276,7 +277,7 @@ def _eval_run(directory, episodes: list[dict]):
     return directory
 
 
-def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
+def test_paper_figures_from_runs(tmp_path, floorplan1_tasks, monkeypatch):
     from kgnavbench.runs import train_method
 
     seen = [_episode("seen_seen", 9, False, "FloorPlan1")]
@@ -328,6 +329,29 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks):
     sizes = {"tsne_gcn.png": figures.TSNE_SIZE, "attention_example.png": figures.ATTENTION_SIZE}
     for p in paths:
         assert _is_figure(p, sizes.get(p.name, figures.FIGURE_SIZE)), p
+
+    # the attention example's step: weights over the types in the view or the target, summing to 1;
+    # a softmax over all nodes weighs the others too ("in neither"), and figures() prefers the former
+    step = figures.attention_step("kg_attention", run, row="+KG+Attention")
+    places = {place for _, _, place in step["attended"]}
+    assert places and "in neither" not in places and "+KG+Attention (" in step["caption"]
+    assert sum(w for _, w, _ in step["attended"]) == pytest.approx(1.0, abs=1e-4)
+    all_nodes = train_method(
+        "kg_attention",
+        {**options, "attention_nodes": "all"},
+        frames=200,
+        kitchens=("FloorPlan1",),
+        runs_dir=tmp_path,
+        progress=lambda line: None,
+    )
+    step = figures.attention_step("kg_attention", all_nodes)
+    assert len(step["attended"]) == 125 and "in neither" in {p for _, _, p in step["attended"]}
+    chosen = []
+    monkeypatch.setattr(figures, "attention_step", lambda *a, **k: chosen.append(a[1]) or step)
+    figures.figures(
+        [*rows, ("all nodes", str(all_nodes), str(ours))], tmp_path / "both", progress=notes.append
+    )
+    assert chosen == [Path(run)]
 
     # the GCN features the t-SNE embeds: the checkpoint's network over its own co-visibility graph
     h, adjacency = figures.gcn_node_features(figures._kg_checkpoint(run)[0])
@@ -386,7 +410,7 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
 
     # --trained: the runs come from that folder (table.Sources), never trained
     taken = []
-    monkeypatch.setattr(table, "run_table", lambda *args, sources: taken.append(sources) or result)
+    monkeypatch.setattr(table, "run_table", lambda *args, device, sources: taken.append(sources) or result)
     figures.figures_of_table(
         "smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append, trained=tmp_path
     )

@@ -601,6 +601,12 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
         config = json.loads((zoo / run.name / "config.json").read_text())
         config["training_code_sha256"], config["git_revision"] = "0" * 64, "0123456789abcdef"
         (zoo / run.name / "config.json").write_text(json.dumps(config))
+    # what a killed ship leaves: a hidden staging folder with the run's JSON files and no weights
+    run = next(zoo.iterdir())
+    leftover = zoo / f".{run.name}-killed.tmp"
+    leftover.mkdir()
+    for name in ("config.json", "finished.json"):
+        shutil.copyfile(run / name, leftover / name)
     shipped = tmp_path / "shipped"
     assert main(smoke + ["--runs", str(shipped), "--out", str(shipped), "--trained", str(zoo)]) == 0
     out = capsys.readouterr().out
@@ -614,7 +620,7 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     )
 
     # a run missing from the zoo, or trained with other options: one line, nothing trained
-    missing = sorted(zoo.iterdir())[0]
+    missing = run
     config = json.loads((missing / "config.json").read_text())
     config["options"]["lr"] = 0.5
     (missing / "config.json").write_text(json.dumps(config))
@@ -642,8 +648,16 @@ def test_ship_refuses_what_it_cannot_ship_whole_and_never_replaces(tmp_path, cap
         return err
 
     assert "not a training run" in ship()
+    (run / "config.json").write_text("{not json")
+    (run / "finished.json").write_text(json.dumps({"frames": 10}))
+    assert "config.json is unreadable" in ship()
+    (run / "config.json").write_text(json.dumps({"method": "lstm_a3c"}))
+    assert "config.json is not a run's config.json: no seed" in ship()
     (run / "config.json").write_text(json.dumps({"method": "lstm_a3c", "seed": 0, "frames": 10}))
+    (run / "finished.json").unlink()
     assert "is not finished" in ship()
+    (run / "finished.json").write_text("[]")
+    assert "no frames" in ship()
     (run / "finished.json").write_text(json.dumps({"frames": 10}))
     assert "has no metrics.csv" in ship()
     (run / "metrics.csv").write_text("frames\n10\n")
@@ -656,10 +670,17 @@ def test_ship_refuses_what_it_cannot_ship_whole_and_never_replaces(tmp_path, cap
     runs.save_checkpoint(run / "best.pt", state)
     (run / "best.pt.sha256").unlink()
     assert "has no checksum" in ship()
-    runs.save_checkpoint(run / "best.pt", state)
+    runs.save_checkpoint(run / "best.pt", {**state, "optimizer": {}})
     assert "last.pt does not exist" in ship("--last")
-    assert main(["ship", str(run), "--zoo", str(zoo)]) == 0
-    assert "(best.pt from 10)" in capsys.readouterr().out
+    runs.save_checkpoint(run / "last.pt", {**state, "frames": 20, "agents": {}})
+    assert main(["ship", str(run), "--zoo", str(zoo), "--last"]) == 0
+    assert "10 frames (best.pt from 10)" in capsys.readouterr().out
+    shipped = zoo / run.name
+    assert (shipped.stat().st_mode & 0o777) == 0o755  # readable by everyone, as the files are
+    for name, frames in (("best", 10), ("last", 20)):
+        ck = runs.load_checkpoint(shipped / f"{name}.pt")  # its checksum verified
+        assert ck == {**state, "frames": frames}  # weights only: no optimiser, no agents
+    assert [p.name for p in zoo.iterdir()] == [run.name]  # no staging folder left
     before = {p.name: p.read_bytes() for p in (zoo / run.name).iterdir()}
     assert main(["ship", str(run), "--zoo", str(zoo)]) == 2
     assert "never replaced" in capsys.readouterr().err
