@@ -691,8 +691,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="copy a finished training run into zoo/, weights only, for `eval --run` and `table --trained`",
         description="Copy a finished run (RUNS/train/<method>-<hash>/) into ZOO/<method>-<hash>/: "
         "config.json, metrics.csv, finished.json and best.pt (Table I's checkpoint; with --last also "
-        "last.pt), each checkpoint weights-only in fp32 with its sha256. Prints the folder's size and a "
-        "row for zoo/README.md. Never replaces a folder already there.",
+        "last.pt), each checkpoint weights-only, as trained (fp32), with its sha256. Prints the "
+        "folder's size and what zoo/README.md lists of it. Never replaces a folder already there.",
     )
     p.add_argument("run", type=Path, metavar="RUN_DIR", help="a finished training run")
     p.add_argument("--zoo", type=Path, default=Path("zoo"), help="where shipped runs live (default zoo/)")

@@ -657,42 +657,42 @@ def unseen_kitchen_stats(episodes: list[dict], where="episodes") -> tuple[float,
     return collisions, shown
 
 
-def _kg_checkpoint(train_dir: Path) -> tuple[dict, Path] | None:
-    """The best-validation checkpoint of a training run when its model has an accumulated knowledge
-    graph, else None."""
+def _run_checkpoint(train_dir: Path, last_too: bool) -> tuple[dict, Path] | None:
+    """A training run's best-validation checkpoint (with `last_too`, its last.pt where there is no
+    best.pt yet: a run stopped before its first validation) and its path; None where there is none."""
     from .runs import TrainError, load_checkpoint  # lazily: recording must not cost a torch import
 
     path = train_dir / "best.pt"
-    if not path.exists():
-        path = train_dir / "last.pt"  # a run stopped before its first validation
+    if last_too and not path.exists():
+        path = train_dir / "last.pt"
     if not path.exists():
         return None
     try:
-        ck = load_checkpoint(path)
+        return load_checkpoint(path), path
     except TrainError as e:
         raise FigureError(str(e)) from e
-    config = ck["model_config"]
+
+
+def _kg_checkpoint(train_dir: Path) -> tuple[dict, Path] | None:
+    """The best-validation checkpoint of a training run (else its last) when its model has an
+    accumulated knowledge graph, else None."""
+    found = _run_checkpoint(train_dir, last_too=True)
+    if found is None:
+        return None
+    config = found[0]["model_config"]
     if config.get("kg", "none") == "none" or config.get("kg_graph") != "accumulated":
         return None
-    return ck, path
+    return found
 
 
 def _attention_model(train_dir: Path) -> tuple[str, str] | None:
     """(method, attention_nodes) of a training run whose best checkpoint has a model with attention
     over its knowledge graph, else None (no best.pt yet: nothing an evaluation would test)."""
-    from .runs import TrainError, load_checkpoint  # lazily, as above
-
-    path = train_dir / "best.pt"
-    if not path.exists():
+    found = _run_checkpoint(train_dir, last_too=False)
+    if found is None or found[0]["model_config"].get("kg") != "attention":
         return None
-    try:
-        ck = load_checkpoint(path)
-    except TrainError as e:
-        raise FigureError(str(e)) from e
-    config = ck["model_config"]
-    if config.get("kg") != "attention":
-        return None
-    return str(ck.get("method")), str(config.get("attention_nodes", "visible"))
+    ck = found[0]
+    return str(ck.get("method")), str(ck["model_config"].get("attention_nodes", "visible"))
 
 
 def gcn_node_features(ck: dict, where="checkpoint") -> tuple[torch.Tensor, torch.Tensor]:
