@@ -406,6 +406,10 @@ def cmd_table(args: argparse.Namespace) -> int:
         sources = Sources(args.trained, args.train_only)
         arguments.writable_folder(args.runs, "--runs")
         assembles = args.job is None and not args.worker and not args.train_only
+        if args.row and not assembles:
+            raise UsageError(
+                "--row picks the rows of a table to assemble; --job, --worker and --train-only assemble none"
+            )
         if assembles:
             arguments.writable_folder(args.out or spec.path.parent, "--out")
         if args.job is not None or args.worker:
@@ -422,7 +426,9 @@ def cmd_table(args: argparse.Namespace) -> int:
                 "what is left and assembles the table"
             )
             return 0
-        result = run_table(spec, args.preset, args.runs, say, args.workers, device, sources)
+        result = run_table(
+            spec, args.preset, args.runs, say, args.workers, device, sources, tuple(args.row or ())
+        )
         paths = write_table(result, args.out or spec.path.parent)
     except (TableError, TrainError, DistributedError) as e:
         raise UsageError(str(e)) from e
@@ -752,6 +758,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="train the preset's runs (all, or --job N's, or a --worker's) and stop: no evaluation, "
         "no table; a later `table` evaluates and assembles",
+    )
+    p.add_argument(
+        "--row",
+        action="append",
+        metavar="NAME",
+        help="only this row of the preset, as named in the spec (repeatable): a partial table, written "
+        "as table1-<preset>-partial.* and captioned with the rows it leaves out",
     )
     _device_option(p)
     p.set_defaults(func=cmd_table)

@@ -130,6 +130,9 @@ class TableResult:
     rows: list[RowResult]
     seconds: float
     git_revision: str
+    left_out: tuple[
+        str, ...
+    ] = ()  # rows of the preset that this table leaves out (`--rows`): a partial table
     _statistics: TableStatistics | None = field(default=None, init=False, repr=False, compare=False)
 
     def statistics(self) -> TableStatistics:
@@ -448,6 +451,19 @@ def table_jobs(spec: TableSpec, preset: Preset) -> list[tuple[Row, int]]:
     return [(row, seed) for row in preset_rows(spec, preset) for seed in range(preset.seeds)]
 
 
+def only_rows(spec: TableSpec, preset: Preset, names: tuple[str, ...]) -> list[Row]:
+    """The preset's rows named in `names` (all of them for none), in the spec's order; a TableError
+    names a row the preset does not have."""
+    rows = preset_rows(spec, preset)
+    unknown = [name for name in names if name not in {row.name for row in rows}]
+    if unknown:
+        raise TableError(
+            f"preset {preset.name!r} has no row {', '.join(map(repr, unknown))}; its rows: "
+            + ", ".join(row.name for row in rows)
+        )
+    return [row for row in rows if not names or row.name in names]
+
+
 def _preset(spec: TableSpec, preset_name: str) -> Preset:
     if preset_name not in spec.presets:
         raise TableError(f"unknown preset {preset_name!r}; {spec.path} has {', '.join(spec.presets)}")
@@ -543,8 +559,10 @@ def run_table(
     workers: int = 1,
     device: str = "cpu",
     sources: Sources = Sources(),
+    rows_named: tuple[str, ...] = (),
 ) -> TableResult:
     """Every row and seed (a job each), with progress and an ETA; resumable (see the module docstring).
+    `rows_named`: only these rows of the preset (a partial table, its caption and file names say so).
     `workers` > 1 runs that many jobs at once in worker processes (torch on the preset's `threads`,
     else one thread, each). A job's options, threads among them, come from the spec alone, so with
     `threads` in the preset the runs and the table are the same whatever the number of workers; only
@@ -554,8 +572,8 @@ def run_table(
         raise TableError(f"workers must be at least 1, got {workers}")
     runs_dir = Path(runs_dir)
     start = time.perf_counter()
-    rows = preset_rows(spec, preset)
-    jobs = table_jobs(spec, preset)
+    rows = only_rows(spec, preset, rows_named)
+    jobs = [(row, seed) for row, seed in table_jobs(spec, preset) if row in rows]
     kinds = [_trains(row) for row, _ in jobs]
     if sources.train_only:  # only the jobs that train
         jobs = [job for job, trains in zip(jobs, kinds, strict=True) if trains]
@@ -636,7 +654,8 @@ def run_table(
         result.eval_runs.append(outcome.eval_run)
         result.seconds += outcome.seconds
     results = [per_row[row.name] for row in rows if row.name in per_row]  # (training only: trained rows)
-    return TableResult(spec, preset, results, time.perf_counter() - start, git_revision())
+    left_out = tuple(row.name for row in preset_rows(spec, preset) if row not in rows)
+    return TableResult(spec, preset, results, time.perf_counter() - start, git_revision(), left_out)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -791,6 +810,7 @@ def caption(result: TableResult) -> str:
         f"replicates){one_seed}; the paper's as printed on the line '(paper)'; seen/seen and seen/unseen: "
         f"seen kitchens with seen or unseen targets; '–': no episodes in the cell, or none in the paper. "
         f"Git {result.git_revision}, wall time {result.seconds / 60:.1f} min."
+        + (f" Partial: without the preset's rows {', '.join(result.left_out)}." if result.left_out else "")
     )
 
 
@@ -873,7 +893,9 @@ def to_markdown(result: TableResult) -> str:
     lines = [f"**{caption(result)}**", ""]
     head = _header()
     lines += _markdown_table(head, table_rows(result), numeric=set(range(1, len(head))))
-    if result.spec.comparisons:
+    if result.spec.comparisons and not ablation_rows(result):  # a partial table (`--row`)
+        lines += ["", "**Ablation check.** No comparison of the spec has both its rows in this table."]
+    elif result.spec.comparisons:
         lines += ["", f"**Ablation check.** {ABLATION_INTRO}", ""]
         head = _ablation_header()  # comparison, cell, then per metric: paper, ours, verdict
         numbers = {i for i in range(2, len(head)) if (i - 2) % 3 != 2}
@@ -979,7 +1001,7 @@ def to_latex(result: TableResult) -> str:
     ]
     lines += _tex_tabular("l" + "rr" * len(CELLS), head, table_rows(result))
     lines.append(r"\end{table*}")
-    if result.spec.comparisons:
+    if result.spec.comparisons and ablation_rows(result):
         metrics = " & ".join(rf"\multicolumn{{3}}{{c}}{{{metric}}}" for metric in METRICS)
         head = [
             rf" & & {metrics} \\",
@@ -997,9 +1019,11 @@ def to_latex(result: TableResult) -> str:
 
 def write_table(result: TableResult, out_dir: Path | str) -> list[Path]:
     """tables/table1.{md,csv,tex} and table1-ablation.csv for the quick preset, table1-<preset>.* and
-    table1-<preset>-ablation.csv for the others."""
+    table1-<preset>-ablation.csv for the others; `-partial` after the preset's name for a table without
+    some of its rows (`--rows`), so that it never overwrites the whole one."""
     out_dir = Path(out_dir)
     stem = "table1" if result.preset.name == "quick" else f"table1-{result.preset.name}"
+    stem += "-partial" if result.left_out else ""
     paths = []
     for name, text in (
         (f"{stem}.md", to_markdown(result)),

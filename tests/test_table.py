@@ -618,6 +618,27 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     assert _numbers((shipped / "table1-smoke.md").read_text()) == _numbers(
         (trained / "table1-smoke.md").read_text()
     )
+    # `--row`: a partial table of the rows named, from the same evaluations, beside the whole one
+    whole = (shipped / "table1-smoke.md").read_text()
+    from_zoo = ["--runs", str(shipped), "--out", str(shipped), "--trained", str(zoo)]
+    evaluations = sorted((shipped / "eval").iterdir())
+    assert main(smoke + from_zoo + ["--row", "LSTM A3C"]) == 0
+    assert "training lstm_a3c" not in capsys.readouterr().out
+    assert sorted((shipped / "eval").iterdir()) == evaluations and not (shipped / "train").exists()
+    partial = (shipped / "table1-smoke-partial.md").read_text()
+    assert "Partial: without the preset's rows Random walk." in partial
+    lstm = [line for line in _numbers(whole) if line.startswith("| LSTM A3C |")]
+    assert lstm and [line for line in _numbers(partial) if line.startswith("| LSTM A3C |")] == lstm
+    assert "| Random walk |" in whole and "| Random walk |" not in partial
+    assert "No comparison of the spec has both its rows in this table." in partial
+    assert (shipped / "table1-smoke.md").read_text() == whole  # never overwritten by a partial one
+    for bad, named in (
+        (["--row", "+KG"], "preset 'smoke' has no row '+KG'; its rows: Random walk, LSTM A3C"),
+        (["--row", "LSTM A3C", "--job", "1"], "--row picks the rows of a table to assemble"),
+    ):
+        assert main(smoke + from_zoo + bad) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and named in err, err
 
     # a run missing from the zoo, or trained with other options: one line, nothing trained
     missing = run
