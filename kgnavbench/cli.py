@@ -394,6 +394,10 @@ def cmd_table(args: argparse.Namespace) -> int:
         if args.preset not in spec.presets:
             raise UsageError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
         device = arguments.device_name(args.device)
+        if args.jobs and args.row:
+            raise UsageError(
+                "--row picks the rows of a table to assemble; --jobs lists every job of the preset"
+            )
         if args.jobs:
             print("\n".join(job_commands(spec, args.preset, args.runs)))
             return 0
@@ -764,7 +768,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         metavar="NAME",
         help="only this row of the preset, as named in the spec (repeatable): a partial table, written "
-        "as table1-<preset>-partial.* and captioned with the rows it leaves out",
+        "as table1-<preset>-partial.* (quick: table1-partial.*; the last one replaces an earlier one) "
+        "and captioned with the rows it leaves out",
     )
     _device_option(p)
     p.set_defaults(func=cmd_table)

@@ -130,9 +130,8 @@ class TableResult:
     rows: list[RowResult]
     seconds: float
     git_revision: str
-    left_out: tuple[
-        str, ...
-    ] = ()  # rows of the preset that this table leaves out (`--rows`): a partial table
+    # rows of the preset that this table leaves out (`--row`): a partial table
+    left_out: tuple[str, ...] = ()
     _statistics: TableStatistics | None = field(default=None, init=False, repr=False, compare=False)
 
     def statistics(self) -> TableStatistics:
@@ -459,7 +458,7 @@ def only_rows(spec: TableSpec, preset: Preset, names: tuple[str, ...]) -> list[R
     if unknown:
         raise TableError(
             f"preset {preset.name!r} has no row {', '.join(map(repr, unknown))}; its rows: "
-            + ", ".join(row.name for row in rows)
+            + "; ".join(row.name for row in rows)
         )
     return [row for row in rows if not names or row.name in names]
 
@@ -770,6 +769,7 @@ def table_statistics(result: TableResult, reps: int = REPLICATES) -> TableStatis
 # Writing the table
 
 NONE = "–"  # no episodes in the cell, or not in the paper
+NO_COMPARISON = "No comparison of the spec has both its rows in this table."
 
 
 def interval_text(interval: Interval | None, signed: bool = False) -> str:
@@ -810,7 +810,8 @@ def caption(result: TableResult) -> str:
         f"replicates){one_seed}; the paper's as printed on the line '(paper)'; seen/seen and seen/unseen: "
         f"seen kitchens with seen or unseen targets; '–': no episodes in the cell, or none in the paper. "
         f"Git {result.git_revision}, wall time {result.seconds / 60:.1f} min."
-        + (f" Partial: without the preset's rows {', '.join(result.left_out)}." if result.left_out else "")
+        # "; ": a row's name may hold a comma ("+IL+TSE, object detections, no graph")
+        + (f" Partial: without the preset's rows {'; '.join(result.left_out)}." if result.left_out else "")
     )
 
 
@@ -893,8 +894,8 @@ def to_markdown(result: TableResult) -> str:
     lines = [f"**{caption(result)}**", ""]
     head = _header()
     lines += _markdown_table(head, table_rows(result), numeric=set(range(1, len(head))))
-    if result.spec.comparisons and not ablation_rows(result):  # a partial table (`--row`)
-        lines += ["", "**Ablation check.** No comparison of the spec has both its rows in this table."]
+    if result.spec.comparisons and not ablation_rows(result):  # none has both its rows here
+        lines += ["", f"**Ablation check.** {NO_COMPARISON}"]
     elif result.spec.comparisons:
         lines += ["", f"**Ablation check.** {ABLATION_INTRO}", ""]
         head = _ablation_header()  # comparison, cell, then per metric: paper, ours, verdict
@@ -941,7 +942,8 @@ def to_ablation_csv(result: TableResult) -> str:
     its 95% interval, the verdict (empty where we have no episodes)."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(["# Ablation check: " + ABLATION_INTRO + " " + caption(result)])
+    none = "" if ablation_rows(result) else NO_COMPARISON + " "
+    writer.writerow(["# Ablation check: " + none + ABLATION_INTRO + " " + caption(result)])
     writer.writerow(
         ["base", "other", "column", "kind", "metric", "paper_base", "paper_other", "paper_difference"]
         + ["difference", "ci_low", "ci_high", "verdict"]
@@ -1014,13 +1016,16 @@ def to_latex(result: TableResult) -> str:
         ]
         lines += _tex_tabular("ll" + "rrl" * len(METRICS), head, ablation_rows(result))
         lines.append(r"\end{table*}")
+    elif result.spec.comparisons:
+        lines.append("% Ablation check. " + NO_COMPARISON)
     return "\n".join(lines) + "\n"
 
 
 def write_table(result: TableResult, out_dir: Path | str) -> list[Path]:
     """tables/table1.{md,csv,tex} and table1-ablation.csv for the quick preset, table1-<preset>.* and
     table1-<preset>-ablation.csv for the others; `-partial` after the preset's name for a table without
-    some of its rows (`--rows`), so that it never overwrites the whole one."""
+    some of its rows (`--row`), so that it never overwrites the whole one (a later partial table of the
+    same preset replaces an earlier one)."""
     out_dir = Path(out_dir)
     stem = "table1" if result.preset.name == "quick" else f"table1-{result.preset.name}"
     stem += "-partial" if result.left_out else ""

@@ -630,11 +630,13 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     lstm = [line for line in _numbers(whole) if line.startswith("| LSTM A3C |")]
     assert lstm and [line for line in _numbers(partial) if line.startswith("| LSTM A3C |")] == lstm
     assert "| Random walk |" in whole and "| Random walk |" not in partial
-    assert "No comparison of the spec has both its rows in this table." in partial
+    for name in ("table1-smoke-partial.md", "table1-smoke-partial.tex", "table1-smoke-partial-ablation.csv"):
+        assert "No comparison of the spec has both its rows in this table." in (shipped / name).read_text()
     assert (shipped / "table1-smoke.md").read_text() == whole  # never overwritten by a partial one
     for bad, named in (
-        (["--row", "+KG"], "preset 'smoke' has no row '+KG'; its rows: Random walk, LSTM A3C"),
+        (["--row", "+KG"], "preset 'smoke' has no row '+KG'; its rows: Random walk; LSTM A3C"),
         (["--row", "LSTM A3C", "--job", "1"], "--row picks the rows of a table to assemble"),
+        (["--row", "LSTM A3C", "--jobs"], "--jobs lists every job of the preset"),
     ):
         assert main(smoke + from_zoo + bad) == 2
         err = capsys.readouterr().err.strip()
