@@ -772,6 +772,11 @@ NONE = "–"  # no episodes in the cell, or not in the paper
 NO_COMPARISON = "No comparison of the spec has both its rows in this table."
 
 
+def _no_comparison_here(result: TableResult) -> bool:
+    """The spec draws comparisons, but none has both its rows in this table (a partial one)."""
+    return bool(result.spec.comparisons) and not result.statistics().comparisons
+
+
 def interval_text(interval: Interval | None, signed: bool = False) -> str:
     """'52.6 [48.1, 57.0]' (a difference: '+4.1 [-0.3, +8.2]'); '–' for none."""
     if interval is None:
@@ -894,7 +899,7 @@ def to_markdown(result: TableResult) -> str:
     lines = [f"**{caption(result)}**", ""]
     head = _header()
     lines += _markdown_table(head, table_rows(result), numeric=set(range(1, len(head))))
-    if result.spec.comparisons and not ablation_rows(result):  # none has both its rows here
+    if _no_comparison_here(result):
         lines += ["", f"**Ablation check.** {NO_COMPARISON}"]
     elif result.spec.comparisons:
         lines += ["", f"**Ablation check.** {ABLATION_INTRO}", ""]
@@ -942,7 +947,7 @@ def to_ablation_csv(result: TableResult) -> str:
     its 95% interval, the verdict (empty where we have no episodes)."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
-    none = "" if ablation_rows(result) else NO_COMPARISON + " "
+    none = "" if result.statistics().comparisons else NO_COMPARISON + " "
     writer.writerow(["# Ablation check: " + none + ABLATION_INTRO + " " + caption(result)])
     writer.writerow(
         ["base", "other", "column", "kind", "metric", "paper_base", "paper_other", "paper_difference"]
@@ -1003,7 +1008,9 @@ def to_latex(result: TableResult) -> str:
     ]
     lines += _tex_tabular("l" + "rr" * len(CELLS), head, table_rows(result))
     lines.append(r"\end{table*}")
-    if result.spec.comparisons and ablation_rows(result):
+    if _no_comparison_here(result):
+        lines.append("% Ablation check. " + NO_COMPARISON)
+    elif result.spec.comparisons:
         metrics = " & ".join(rf"\multicolumn{{3}}{{c}}{{{metric}}}" for metric in METRICS)
         head = [
             rf" & & {metrics} \\",
@@ -1016,8 +1023,6 @@ def to_latex(result: TableResult) -> str:
         ]
         lines += _tex_tabular("ll" + "rrl" * len(METRICS), head, ablation_rows(result))
         lines.append(r"\end{table*}")
-    elif result.spec.comparisons:
-        lines.append("% Ablation check. " + NO_COMPARISON)
     return "\n".join(lines) + "\n"
 
 
