@@ -72,8 +72,11 @@ class LearnedPolicy:
         self.fresh.add(agent)
 
     def _missing(self, observation) -> None:
+        # the keys listed, not `key in observation`: a Mapping's `in` would gather the env's lazy
+        # observation arrays (env.BatchObservations) only to test them
+        shown = list(observation)
         for key in (self.view_key, self.target_key):
-            if key not in observation:
+            if key not in shown:
                 raise TrainError(
                     f"the observations have no {key!r}: a learned policy needs the env's features "
                     "(parallel_env(..., features=True), as kgnavbench eval makes it)"
@@ -101,6 +104,7 @@ class LearnedPolicy:
             if a not in self.slot:
                 self.reset(a)
         slots = np.fromiter((self.slot[a] for a in agents), np.int64, len(agents))
+        at = self.model.tensor(slots)  # a tensor index: a NumPy one is converted on every use
         now = observations[self.view_key]
         tensor = self.model.tensor
         r_t = tensor(np.asarray(observations["view_objects"]).astype(np.float32))
@@ -121,11 +125,10 @@ class LearnedPolicy:
         self.fresh.difference_update(agents)
         with torch.no_grad():
             logits, _, rows_after, extras = self.model.forward(
-                view, target, target_rows, r_t, r_g, rows_of(self.hidden, slots), self.graph, scene
+                view, target, target_rows, r_t, r_g, rows_of(self.hidden, at), self.graph, scene
             )
             actions = torch.multinomial(F.softmax(logits, -1), 1, generator=self.generator).squeeze(1)
         if self.hidden is not None:
-            at = self.model.tensor(slots)
             for h, r in zip(self.hidden, rows_after):
                 h[at] = r
         # for recordings (`explain`): kept as the tensor, read only when asked (building per-agent lists
