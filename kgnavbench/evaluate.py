@@ -128,6 +128,9 @@ class EvalConfig:
     run: str = ""  # a learned method's training run directory: its best-validation checkpoint is tested
     checkpoint: str = "best"  # which of the run's checkpoints: best.pt (Table I's rule) or last.pt
     device: str = "cpu"  # where a learned policy computes: "cpu" or "cuda" (kgnavbench/device.py)
+    # the training kitchens whose unseen targets are evaluated (the seen kitchens / unseen targets
+    # column); the others of the evaluation get their seen targets only. Empty: every target.
+    unseen_target_kitchens: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         checkpoint_name(self.checkpoint)
@@ -151,6 +154,26 @@ class EvalConfig:
                 f"{', '.join(outside)} {'is' if len(outside) == 1 else 'are'} not in the {self.split!r} "
                 f"split ({', '.join(kitchens_of_split(self.split))})"
             )
+        for k in self.unseen_target_kitchens:
+            check_name(k)
+        if len(set(self.unseen_target_kitchens)) != len(self.unseen_target_kitchens):
+            raise EvalError(f"a kitchen is named twice in {','.join(self.unseen_target_kitchens)}")
+        training = set(kitchens_of_split("train")) & set(self.kitchen_list())
+        elsewhere = [k for k in self.unseen_target_kitchens if k not in training]
+        if elsewhere:  # only a training kitchen has a seen kitchens / unseen targets column
+            raise EvalError(
+                f"unseen targets are evaluated in training kitchens only: {', '.join(elsewhere)} "
+                f"{'is' if len(elsewhere) == 1 else 'are'} not a training kitchen of this evaluation"
+            )
+
+    def seen_targets_only(self, kitchen: str) -> bool:
+        """Whether this evaluation runs only the seen targets of `kitchen` (a training kitchen left
+        out of `unseen_target_kitchens`)."""
+        return (
+            bool(self.unseen_target_kitchens)
+            and kitchen not in self.unseen_target_kitchens
+            and kitchen in kitchens_of_split("train")
+        )
 
     def kitchen_list(self) -> list[str]:
         return list(self.kitchens) if self.kitchens else kitchens_of_split(self.split)
@@ -213,6 +236,7 @@ def evaluate_kitchen(
     seed = kitchen_seed(config.seed, kitchen)
     spec = policy_spec(config, seed, tasks.graph.views.shape[1], checkpoint)
     policy = plugin.make_policy(plugin_config, spec)
+    seen_only = seen_only or config.seen_targets_only(kitchen)
     columns, episodes = [], []
     for column, target_episodes in kitchen_episodes(tasks, config.episodes_per_target):
         if seen_only and column != "seen_seen":  # (evaluate_policy's targets="seen")
@@ -583,10 +607,12 @@ def parse_results(text: str, expected: list[tuple[str, int]], kitchen: str) -> l
     return results
 
 
-def expected_episodes(kitchen: str, per_target: int) -> list[tuple[str, int]]:
-    """(target, start) of every fixed episode of a kitchen that an evaluation runs, in order."""
+def expected_episodes(kitchen: str, per_target: int, seen_only: bool = False) -> list[tuple[str, int]]:
+    """(target, start) of every fixed episode of a kitchen that an evaluation runs, in order (of its
+    seen targets only with `seen_only`)."""
     tasks = load_task_file()["kitchens"][kitchen]
-    return [(t["object"], s) for t in tasks["targets"] for s in t["starts"][:per_target]]
+    targets = [t for t in tasks["targets"] if t["seen"] or not seen_only]
+    return [(t["object"], s) for t in targets for s in t["starts"][:per_target]]
 
 
 def run_identity(config: EvalConfig, plugin: Plugin, plugin_config, weights: Weights | None = None) -> dict:
@@ -598,7 +624,15 @@ def run_identity(config: EvalConfig, plugin: Plugin, plugin_config, weights: Wei
         # as it reads back (tuples are lists); where the run lies and which of its checkpoints is
         # tested are not part of it, the tested weights are
         "config": json.loads(
-            json.dumps({k: v for k, v in asdict(config).items() if k not in ("run", "checkpoint")})
+            json.dumps(
+                {
+                    k: v
+                    for k, v in asdict(config).items()
+                    if k not in ("run", "checkpoint")
+                    # left out when empty (every target): the evaluations from before it keep their names
+                    and not (k == "unseen_target_kitchens" and not v)
+                }
+            )
         ),
         # the tested weights themselves: a retrained run is another evaluation
         "checkpoint_sha256": weights.sha256 if weights else None,
@@ -729,7 +763,7 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
     evaluated, evaluating = 0, 0.0  # kitchens evaluated in this process and their seconds (the ETA)
     for k, kitchen in enumerate(kitchens):
         path = directory / "episodes" / f"{kitchen}.jsonl"
-        expected = expected_episodes(kitchen, config.episodes_per_target)
+        expected = expected_episodes(kitchen, config.episodes_per_target, config.seen_targets_only(kitchen))
         results = None
         if path.exists():
             data = path.read_bytes()
@@ -790,6 +824,11 @@ def describe(config: EvalConfig) -> str:
     return (
         f"{config.method}{f' ({options})' if options else ''} — success: Stop {rule}; {stop}; "
         f"{config.episodes_per_target} episodes per target, split {config.split}"
+        + (
+            f"; unseen targets in {', '.join(config.unseen_target_kitchens)} only"
+            if config.unseen_target_kitchens
+            else ""
+        )
         + (
             f"; checkpoint {selected_checkpoint(config.run, config.method, config.checkpoint)} "
             f"({CHECKPOINT_MEANING.get(config.checkpoint, 'a snapshot kept with keep_every')})"

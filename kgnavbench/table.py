@@ -360,6 +360,7 @@ def run_row(
         run=str(run_dir) if run_dir else "",
         checkpoint="last" if checkpoint_rule(spec, preset) == "last" else "best",
         device=device,
+        unseen_target_kitchens=preset.unseen_target_kitchens,
     )
     if not kitchens:  # every evaluation kitchen is an unseen one, where this row has no cells: "–"
         return run_dir, EvalRun(config, Path(runs_dir) / "eval")  # (no kitchens would mean all of them)
@@ -813,10 +814,17 @@ def caption(result: TableResult) -> str:
         f"{CHECKPOINT_TEXT[checkpoint_rule(result.spec, p)]}. Cells: SPL and SR in %, ours as the mean over "
         f"{_seeds_text(p.seeds)}, 95% stratified bootstrap interval over seeds and episodes ({REPLICATES} "
         f"replicates){one_seed}; the paper's as printed on the line '(paper)'; seen/seen and seen/unseen: "
-        f"seen kitchens with seen or unseen targets; '–': no episodes in the cell, or none in the paper. "
+        f"seen kitchens with seen or unseen targets"
+        + (
+            f" (unseen targets in {len(p.unseen_target_kitchens)} of the training kitchens: "
+            f"{', '.join(p.unseen_target_kitchens)})"
+            if p.unseen_target_kitchens
+            else ""
+        )
+        + "; '–': no episodes in the cell, or none in the paper. "
         f"Git {result.git_revision}, wall time {result.seconds / 60:.1f} min."
         # "; ": a row's name may hold a comma ("+IL+TSE, object detections, no graph")
-        + (f" Partial: without the preset's rows {'; '.join(result.left_out)}." if result.left_out else "")
+         + (f" Partial: without the preset's rows {'; '.join(result.left_out)}." if result.left_out else "")
     )
 
 

@@ -18,7 +18,7 @@ from .env import SUCCESS_RULES
 from .evaluate import SEEN_CAP, UNSEEN_CAP
 from .kitchens import KITCHEN_NAMES
 from .plugins import available
-from .tasks import EPISODES_PER_TARGET
+from .tasks import EPISODES_PER_TARGET, load_task_file
 
 SPEC_FILE = Path(__file__).resolve().parent.parent / "tables" / "table1.toml"
 # which checkpoint of a run a table evaluates: "best_val_sr", Table I's rule (the run's best.pt: the best
@@ -76,6 +76,9 @@ class Preset:
     options: dict[str, str]  # training options for every learned row (`set`)
     rows: tuple[str, ...] = ()  # the rows this preset runs, by name; empty: every row of the spec
     checkpoint: str = ""  # the checkpoint rule of its evaluations (CHECKPOINT_RULES); empty: the protocol's
+    # the training kitchens whose unseen targets are evaluated (the seen kitchens / unseen targets
+    # column); the other training kitchens get their seen targets only. Empty: every target.
+    unseen_target_kitchens: tuple[str, ...] = ()
 
     @property
     def threads(self) -> int:
@@ -206,6 +209,7 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
                 "set",
                 "rows",
                 "checkpoint",
+                "unseen_target_kitchens",
             },  # fmt: skip
         )
         preset = Preset(
@@ -223,7 +227,19 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
             options=_options(f"{where}.set", _field(where, t, "set", dict, {}, required=False)),
             rows=tuple(_field(where, t, "rows", list, [], required=False)),
             checkpoint=_field(where, t, "checkpoint", str, "", required=False),
+            unseen_target_kitchens=_kitchens(
+                f"{where}.unseen_target_kitchens",
+                _field(where, t, "unseen_target_kitchens", list, [], False),
+            ),
         )
+        train_split = load_task_file()["splits"]["train"]
+        training = set(train_split) & set(preset.eval_kitchens or train_split)
+        elsewhere = [k for k in preset.unseen_target_kitchens if k not in training]
+        if elsewhere:
+            raise TableError(
+                f"{where}.unseen_target_kitchens: {', '.join(elsewhere)} "
+                f"{'is' if len(elsewhere) == 1 else 'are'} not a training kitchen that the preset evaluates"
+            )
         if preset.checkpoint and preset.checkpoint not in CHECKPOINT_RULES:
             raise TableError(f"{where}.checkpoint = {preset.checkpoint!r}: choose one of {CHECKPOINT_RULES}")
         if preset.frames < 1:

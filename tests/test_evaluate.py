@@ -122,6 +122,38 @@ def test_bad_configs_are_rejected():
         EvalConfig("oracle", episodes_per_target=101)
     with pytest.raises(ValueError, match="FloorPlan99"):
         EvalConfig("oracle", kitchens=("FloorPlan99",))
+    with pytest.raises(ValueError, match="FloorPlan99"):
+        EvalConfig("oracle", unseen_target_kitchens=("FloorPlan99",))
+    with pytest.raises(EvalError, match="FloorPlan27 is not a training kitchen of this evaluation"):
+        EvalConfig("oracle", unseen_target_kitchens=("FloorPlan27",))  # a test kitchen
+    with pytest.raises(EvalError, match="FloorPlan2 is not a training kitchen of this evaluation"):
+        EvalConfig("oracle", kitchens=("FloorPlan1",), unseen_target_kitchens=("FloorPlan2",))
+    with pytest.raises(EvalError, match="named twice"):
+        EvalConfig("oracle", unseen_target_kitchens=("FloorPlan1", "FloorPlan1"))
+
+
+def test_unseen_targets_in_some_kitchens_only(tmp_path, floorplan1_tasks):
+    """A training kitchen left out of unseen_target_kitchens runs its seen targets only, resumes from
+    its results file, and an evaluation without the field keeps the name it always had."""
+    every = EvalConfig("oracle", kitchens=("FloorPlan1",), episodes_per_target=2)
+    named = dataclasses.replace(every, unseen_target_kitchens=("FloorPlan1",))
+    only_seen = dataclasses.replace(
+        every, kitchens=("FloorPlan1", "FloorPlan2"), unseen_target_kitchens=("FloorPlan2",)
+    )
+    assert not named.seen_targets_only("FloorPlan1") and only_seen.seen_targets_only("FloorPlan1")
+    quiet = lambda line: None  # noqa: E731
+    full, same = evaluate(every, tmp_path, quiet), evaluate(named, tmp_path / "b", quiet)
+    assert full.results == same.results and {r.column for r in full.results} == {"seen_seen", "seen_unseen"}
+    identity = json.loads((full.directory / "config.json").read_text())["identity"]["config"]
+    assert "unseen_target_kitchens" not in identity  # left out when empty: older evaluations keep names
+    assert same.directory.name != full.directory.name
+    run = evaluate(only_seen, tmp_path, quiet)
+    seen = [r for r in full.results if r.column == "seen_seen"]
+    assert [r for r in run.results if r.kitchen == "FloorPlan1"] == seen
+    assert {r.column for r in run.results if r.kitchen == "FloorPlan2"} == {"seen_seen", "seen_unseen"}
+    again = evaluate(only_seen, tmp_path, quiet)
+    assert again.resumed == ["FloorPlan1", "FloorPlan2"] and again.results == run.results
+    assert "unseen targets in FloorPlan2 only" in (run.directory / "table.md").read_text()
 
 
 @pytest.mark.parametrize("rule", ["visible", "destination"])

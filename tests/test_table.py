@@ -107,6 +107,9 @@ A_COMPARISON = '[[comparisons]]\nbase = "+KG"\nother = "+KG+Attention"\n'
 assert A_COMPARISON in GOOD
 
 
+UNSEEN_TARGETS = '[presets.{0}]\nunseen_target_kitchens = ["{1}"]\n'
+
+
 @pytest.mark.parametrize(
     ("change", "named"),
     [
@@ -183,6 +186,18 @@ assert A_COMPARISON in GOOD
             "a row is named twice",
         ),
         (lambda t: t.replace('rows = ["Random walk", "IL",', 'rows = "IL"\n#'), "presets.quick.rows = 'IL'"),
+        (
+            lambda t: t.replace("[presets.quick]\n", UNSEEN_TARGETS.format("quick", "FloorPlan99")),
+            "presets.quick.unseen_target_kitchens: unknown kitchen 'FloorPlan99'",
+        ),
+        (
+            lambda t: t.replace("[presets.quick]\n", UNSEEN_TARGETS.format("quick", "FloorPlan27")),
+            "FloorPlan27 is not a training kitchen that the preset evaluates",
+        ),
+        (
+            lambda t: t.replace("[presets.smoke]\n", UNSEEN_TARGETS.format("smoke", "FloorPlan2")),
+            "presets.smoke.unseen_target_kitchens: FloorPlan2 is not a training kitchen that the preset",
+        ),
     ],
 )
 def test_a_bad_spec_gets_one_clear_line_naming_the_field(change, named):
