@@ -158,6 +158,9 @@ class EvalConfig:
             check_name(k)
         if len(set(self.unseen_target_kitchens)) != len(self.unseen_target_kitchens):
             raise EvalError(f"a kitchen is named twice in {','.join(self.unseen_target_kitchens)}")
+        # in the kitchens' order: the same kitchens listed otherwise are the same evaluation
+        ordered = tuple(sorted(self.unseen_target_kitchens, key=KITCHEN_NAMES.index))
+        object.__setattr__(self, "unseen_target_kitchens", ordered)
         training = set(kitchens_of_split("train")) & set(self.kitchen_list())
         elsewhere = [k for k in self.unseen_target_kitchens if k not in training]
         if elsewhere:  # only a training kitchen has a seen kitchens / unseen targets column

@@ -227,12 +227,18 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
             options=_options(f"{where}.set", _field(where, t, "set", dict, {}, required=False)),
             rows=tuple(_field(where, t, "rows", list, [], required=False)),
             checkpoint=_field(where, t, "checkpoint", str, "", required=False),
-            unseen_target_kitchens=_kitchens(
-                f"{where}.unseen_target_kitchens",
-                _field(where, t, "unseen_target_kitchens", list, [], False),
+            # in the kitchens' order: the same kitchens listed otherwise are the same evaluations
+            unseen_target_kitchens=tuple(
+                sorted(
+                    _kitchens(
+                        f"{where}.unseen_target_kitchens",
+                        _field(where, t, "unseen_target_kitchens", list, [], False),
+                    ),
+                    key=KITCHEN_NAMES.index,
+                )
             ),
         )
-        train_split = load_task_file()["splits"]["train"]
+        train_split = load_task_file()["splits"]["train"] if preset.unseen_target_kitchens else []
         training = set(train_split) & set(preset.eval_kitchens or train_split)
         elsewhere = [k for k in preset.unseen_target_kitchens if k not in training]
         if elsewhere:

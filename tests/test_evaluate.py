@@ -122,7 +122,7 @@ def test_bad_configs_are_rejected():
         EvalConfig("oracle", episodes_per_target=101)
     with pytest.raises(ValueError, match="FloorPlan99"):
         EvalConfig("oracle", kitchens=("FloorPlan99",))
-    with pytest.raises(ValueError, match="FloorPlan99"):
+    with pytest.raises(ValueError, match="unknown kitchen 'FloorPlan99'"):
         EvalConfig("oracle", unseen_target_kitchens=("FloorPlan99",))
     with pytest.raises(EvalError, match="FloorPlan27 is not a training kitchen of this evaluation"):
         EvalConfig("oracle", unseen_target_kitchens=("FloorPlan27",))  # a test kitchen
@@ -154,6 +154,9 @@ def test_unseen_targets_in_some_kitchens_only(tmp_path, floorplan1_tasks):
     again = evaluate(only_seen, tmp_path, quiet)
     assert again.resumed == ["FloorPlan1", "FloorPlan2"] and again.results == run.results
     assert "unseen targets in FloorPlan2 only" in (run.directory / "table.md").read_text()
+    # the same kitchens in another order are the same evaluation
+    listed = dataclasses.replace(only_seen, unseen_target_kitchens=("FloorPlan2", "FloorPlan1"))
+    assert listed.unseen_target_kitchens == ("FloorPlan1", "FloorPlan2")
 
 
 @pytest.mark.parametrize("rule", ["visible", "destination"])

@@ -25,6 +25,7 @@ from kgnavbench.table import (
     EpisodeValue,
     RowResult,
     TableResult,
+    caption,
     cell_episodes,
     table_jobs,
     time_left,
@@ -64,6 +65,7 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
     assert list(quick.rows) == PAPER_ROWS and every.rows == ()
     assert quick.options == every.options and quick.options["threads"] == "1"
     assert (quick.frames, quick.episodes, quick.seeds) == (every.frames, every.episodes, every.seeds)
+    assert quick.unseen_target_kitchens == every.unseen_target_kitchens  # (and so quick's evaluations)
     assert quick.seeds >= 3 and quick.episodes >= 20 and quick.frames >= 2_000_000
     assert spec.presets["paper"].frames == 40_000_000 and spec.presets["paper"].episodes == 100
     assert spec.protocol.success_rule == "destination" and spec.protocol.stop_ends
@@ -187,12 +189,12 @@ UNSEEN_TARGETS = '[presets.{0}]\nunseen_target_kitchens = ["{1}"]\n'
         ),
         (lambda t: t.replace('rows = ["Random walk", "IL",', 'rows = "IL"\n#'), "presets.quick.rows = 'IL'"),
         (
-            lambda t: t.replace("[presets.quick]\n", UNSEEN_TARGETS.format("quick", "FloorPlan99")),
-            "presets.quick.unseen_target_kitchens: unknown kitchen 'FloorPlan99'",
+            lambda t: t.replace("[presets.paper]\n", UNSEEN_TARGETS.format("paper", "FloorPlan99")),
+            "presets.paper.unseen_target_kitchens: unknown kitchen 'FloorPlan99'",
         ),
         (
-            lambda t: t.replace("[presets.quick]\n", UNSEEN_TARGETS.format("quick", "FloorPlan27")),
-            "FloorPlan27 is not a training kitchen that the preset evaluates",
+            lambda t: t.replace("[presets.paper]\n", UNSEEN_TARGETS.format("paper", "FloorPlan27")),
+            "presets.paper.unseen_target_kitchens: FloorPlan27 is not a training kitchen that the preset",
         ),
         (
             lambda t: t.replace("[presets.smoke]\n", UNSEEN_TARGETS.format("smoke", "FloorPlan2")),
@@ -207,6 +209,19 @@ def test_a_bad_spec_gets_one_clear_line_naming_the_field(change, named):
         parse_spec(bad, "tables/bad.toml")
     message = str(e.value)
     assert "\n" not in message and "tables/bad.toml" in message and named in message, message
+
+
+def test_a_preset_can_evaluate_unseen_targets_in_some_kitchens_and_its_caption_says_so():
+    listed = '[presets.paper]\nunseen_target_kitchens = ["FloorPlan3", "FloorPlan1"]\n'
+    spec = parse_spec(GOOD.replace("[presets.paper]\n", listed))
+    preset = spec.presets["paper"]
+    assert preset.unseen_target_kitchens == ("FloorPlan1", "FloorPlan3")  # in the kitchens' order
+    result = TableResult(spec, preset, [], 60.0, "abc")
+    assert (
+        "seen or unseen targets (unseen targets in 2 of the training kitchens: FloorPlan1, FloorPlan3);"
+        in (caption(result))
+    )
+    assert "seen or unseen targets; '–'" in caption(TableResult(spec, spec.presets["smoke"], [], 60.0, "abc"))
 
 
 def test_a_spec_without_comparisons_is_fine():
