@@ -113,6 +113,14 @@ def kitchens_of_split(split: str) -> list[str]:
     return sorted(names, key=KITCHEN_NAMES.index)
 
 
+def _check_kitchen_names(names: tuple[str, ...]) -> None:
+    """Every name a kitchen's (check_name's error otherwise), none twice."""
+    for k in names:
+        check_name(k)
+    if len(set(names)) != len(names):
+        raise EvalError(f"a kitchen is named twice in {','.join(names)}")
+
+
 @dataclass(frozen=True)
 class EvalConfig:
     """Everything that decides an evaluation's numbers; its hash names the run directory."""
@@ -144,20 +152,14 @@ class EvalConfig:
             )
         if not 0 <= self.seed <= MAX_SEED:
             raise EvalError(f"seed must be in 0..{MAX_SEED}, not {self.seed}")
-        for k in self.kitchens:
-            check_name(k)
-        if len(set(self.kitchens)) != len(self.kitchens):
-            raise EvalError(f"a kitchen is named twice in {','.join(self.kitchens)}")
+        _check_kitchen_names(self.kitchens)
         outside = [k for k in self.kitchens if k not in kitchens_of_split(self.split)]
         if outside:  # its episodes would be reported under this split's label
             raise EvalError(
                 f"{', '.join(outside)} {'is' if len(outside) == 1 else 'are'} not in the {self.split!r} "
                 f"split ({', '.join(kitchens_of_split(self.split))})"
             )
-        for k in self.unseen_target_kitchens:
-            check_name(k)
-        if len(set(self.unseen_target_kitchens)) != len(self.unseen_target_kitchens):
-            raise EvalError(f"a kitchen is named twice in {','.join(self.unseen_target_kitchens)}")
+        _check_kitchen_names(self.unseen_target_kitchens)
         # in the kitchens' order: the same kitchens listed otherwise are the same evaluation
         ordered = tuple(sorted(self.unseen_target_kitchens, key=KITCHEN_NAMES.index))
         object.__setattr__(self, "unseen_target_kitchens", ordered)
