@@ -62,8 +62,8 @@ from .vecenv import NavigationVectorEnv, StateSpace, build_space, curriculum_rea
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
 METRICS = (
     "frames",
-    "seconds",
-    "frames_per_s",
+    "seconds",  # training time of the whole run, the sessions before a resume included
+    "frames_per_s",  # this session's rate
     "updates",
     "episodes",
     "mean_reward",
@@ -637,8 +637,15 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
         except (KeyError, ValueError, RuntimeError, TypeError) as e:
             raise TrainError(f"checkpoint {last} does not fit this run ({type(e).__name__}: {e})") from e
         progress(f"resumed {run.directory} from {last.name} at {trainer.frames:,} frames")
+    seconds_before = 0.0  # the training time of the sessions before a resume, from the rows it keeps
     if ranks.main:
-        atomic_write(metrics_path, _csv_text(_read_metrics(metrics_path, trainer.frames)))
+        kept = _read_metrics(metrics_path, trainer.frames)
+        atomic_write(metrics_path, _csv_text(kept))
+        if kept and trainer.frames:
+            try:
+                seconds_before = float(kept[-1]["seconds"])
+            except ValueError:
+                seconds_before = 0.0
     every = options.log_every
     next_log = (trainer.frames // every + 1) * every
     next_val = (trainer.frames // options.val_every + 1) * options.val_every
@@ -690,7 +697,9 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
             if selected:
                 trainer.best_val_sr = val_sr
                 save_checkpoint(best, {**trainer.state_dict(), "val_sr": val_sr, "val_spl": val_spl})
-        row = _metrics_row(trainer, time.perf_counter() - t0, trainer.frames - f0, val_sr, val_spl)
+        row = _metrics_row(
+            trainer, seconds_before, time.perf_counter() - t0, trainer.frames - f0, val_sr, val_spl
+        )
         row["val_episodes"] = val_episodes or ""
         with open(metrics_path, "a") as f:
             csv.DictWriter(f, METRICS).writerow(row)
@@ -706,7 +715,7 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
             f"losses RL {row['rl_loss']} IL {row['il_loss']} "
             f"TSE {row['tse_loss']}"
         )
-    seconds = time.perf_counter() - t0
+    seconds = seconds_before + time.perf_counter() - t0
     distributed.finish(ranks)
     if not ranks.main:
         return run.directory
@@ -720,7 +729,11 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
     return run.directory
 
 
-def _metrics_row(trainer: Trainer, seconds: float, frames_done: int, val_sr: float, val_spl: float) -> dict:
+def _metrics_row(
+    trainer: Trainer, seconds_before: float, seconds: float, frames_done: int, val_sr: float, val_spl: float
+) -> dict:
+    """One metrics.csv row: `seconds` is the training time of the whole run (the sessions before a
+    resume included), `frames_per_s` this session's rate."""
     s = trainer.stats
     episodes, successes = trainer.target_stats
     per_target = successes[episodes > 0] / episodes[episodes > 0]
@@ -730,7 +743,7 @@ def _metrics_row(trainer: Trainer, seconds: float, frames_done: int, val_sr: flo
 
     return {
         "frames": trainer.frames,
-        "seconds": f"{seconds:.1f}",
+        "seconds": f"{seconds_before + seconds:.1f}",
         "frames_per_s": f"{frames_done / max(seconds, 1e-9):.0f}",
         "updates": trainer.updates,
         "episodes": int(s["episodes"]),

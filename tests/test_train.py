@@ -384,6 +384,13 @@ def test_killed_training_resumes_to_the_same_weights(tmp_path, hermetic_cache):
     proc.wait()
     saved = runs.load_checkpoint(run_b / "last.pt")["frames"]
     assert 0 < saved < 840 and not (run_b / "finished.json").exists()
+    # the training time counts on from the sessions before: mark the kept row's with a large one
+    metrics = (run_b / "metrics.csv").read_text().splitlines()
+    kept = [i for i, r in enumerate(metrics[1:], 1) if int(r.split(",")[0]) == saved]
+    assert kept, metrics
+    cells = metrics[kept[0]].split(",")
+    metrics[kept[0]] = ",".join([cells[0], "100000.0", *cells[2:]])
+    (run_b / "metrics.csv").write_text("\n".join(metrics) + "\n")
     again = subprocess.run(cmd, capture_output=True, text=True, env=env)
     assert again.returncode == 0, again.stderr
     assert f"at {saved:,} frames" in again.stdout
@@ -400,6 +407,9 @@ def test_killed_training_resumes_to_the_same_weights(tmp_path, hermetic_cache):
     rows_a = (run_a / "metrics.csv").read_text().splitlines()
     rows_b = (run_b / "metrics.csv").read_text().splitlines()
     assert [r.split(",")[0] for r in rows_a] == [r.split(",")[0] for r in rows_b]  # no row lost or doubled
+    after = [float(r.split(",")[1]) for r in rows_b[1:] if int(r.split(",")[0]) > saved]
+    assert after and all(100000.0 < s < 100000.0 + 120 for s in after), after
+    assert 100000.0 < json.loads((run_b / "finished.json").read_text())["seconds"] < 100000.0 + 120
     # and a finished run is found, not retrained
     third = subprocess.run(cmd, capture_output=True, text=True, env=env)
     assert "finished run" in third.stdout and third.stdout.strip().splitlines()[-1] == str(run_b)
