@@ -394,9 +394,11 @@ def cmd_table(args: argparse.Namespace) -> int:
         if args.preset not in spec.presets:
             raise UsageError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
         device = arguments.device_name(args.device)
-        if args.jobs and args.row:
+        assembles = not args.jobs and args.job is None and not args.worker and not args.train_only
+        if args.row and not assembles:
             raise UsageError(
-                "--row picks the rows of a table to assemble; --jobs lists every job of the preset"
+                "--row picks the rows of a table to assemble; "
+                "--jobs, --job, --worker and --train-only assemble none"
             )
         if args.jobs:
             print("\n".join(job_commands(spec, args.preset, args.runs)))
@@ -409,11 +411,6 @@ def cmd_table(args: argparse.Namespace) -> int:
             )
         sources = Sources(args.trained, args.train_only)
         arguments.writable_folder(args.runs, "--runs")
-        assembles = args.job is None and not args.worker and not args.train_only
-        if args.row and not assembles:
-            raise UsageError(
-                "--row picks the rows of a table to assemble; --job, --worker and --train-only assemble none"
-            )
         if assembles:
             arguments.writable_folder(args.out or spec.path.parent, "--out")
         if args.job is not None or args.worker:

@@ -349,6 +349,12 @@ def _train_in(directory: Path, hook, config, record: dict, run: Run) -> Path:
 # Checkpoints
 
 CHECKPOINT_FORMAT = 1
+# what a policy needs of a training checkpoint (policy.load_policy): the weights, their config and the
+# knowledge graph's counts; no optimiser, generators or agents. A weight snapshot and a shipped
+# checkpoint keep these keys only: about a third of a training checkpoint
+POLICY_KEYS = (
+    "format", "method", "options", "model_config", "kitchens", "seed", "frames", "updates", "covis", "model",
+)  # fmt: skip
 
 
 def save_checkpoint(path: Path, state: dict) -> None:

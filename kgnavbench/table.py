@@ -61,6 +61,7 @@ from .intervals import (
 from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, load_plugin
 from .runs import (
+    POLICY_KEYS,
     TrainError,
     load_checkpoint,
     run_record,
@@ -217,12 +218,6 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Pa
     )
 
 
-# what a shipped checkpoint keeps of a training checkpoint: the weights, their config and the knowledge
-# graph's counts (policy.load_policy's needs; the keys of train.Trainer.policy_state), no optimiser,
-# generators or agents: about a third of it
-SHIPPED_KEYS = (
-    "format", "method", "options", "model_config", "kitchens", "seed", "frames", "updates", "covis", "model",
-)  # fmt: skip
 # finished.json last: a staging folder left by a killed ship is never a finished run
 SHIPPED_FILES = ("config.json", "metrics.csv", "finished.json")
 
@@ -253,17 +248,17 @@ def _json_record(path: Path, keys: tuple[str, ...]) -> dict:
 
 
 def _shipped_checkpoint(path: Path) -> dict:
-    """The weights-only copy of a run's checkpoint (SHIPPED_KEYS), or a TableError naming the file."""
+    """The weights-only copy of a run's checkpoint (POLICY_KEYS), or a TableError naming the file."""
     if path.is_file() and checksum_matches(path, path.read_bytes()) is None:
         raise TableError(f"checkpoint {path} has no checksum ({path.name}.sha256); not shipped")
     try:
         ck = load_checkpoint(path)
     except TrainError as e:
         raise TableError(f"{first_line(e).split('; delete')[0]}; not shipped") from e
-    missing = [key for key in SHIPPED_KEYS if key not in ck]
+    missing = [key for key in POLICY_KEYS if key not in ck]
     if missing:
         raise TableError(f"checkpoint {path} has no {', '.join(missing)}; not shipped")
-    return {key: ck[key] for key in SHIPPED_KEYS}
+    return {key: ck[key] for key in POLICY_KEYS}
 
 
 def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",)) -> Shipped:

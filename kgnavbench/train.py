@@ -55,7 +55,15 @@ from .losses import (
     subtarget_types,
 )
 from .models import N_ACTIONS
-from .runs import CHECKPOINT_FORMAT, Run, TrainError, TrainOptions, load_checkpoint, save_checkpoint
+from .runs import (
+    CHECKPOINT_FORMAT,
+    POLICY_KEYS,
+    Run,
+    TrainError,
+    TrainOptions,
+    load_checkpoint,
+    save_checkpoint,
+)
 from .tasks import load_task_file
 from .vecenv import NavigationVectorEnv, StateSpace, build_space, curriculum_reach
 
@@ -543,19 +551,8 @@ class Trainer:
     def policy_state(self) -> dict:
         """What a policy needs of the checkpoint (`policy.load_policy`): the weights, their config and
         the knowledge graph's counts; no optimiser, generators or agents (a snapshot, not a resume point)."""
-        keys = (
-            "format",
-            "method",
-            "options",
-            "model_config",
-            "kitchens",
-            "seed",
-            "frames",
-            "updates",
-            "covis",
-        )
-        state = self.state_dict(weights=False)
-        return {**{k: state[k] for k in keys}, "model": self.model.net.state_dict()}
+        state = {**self.state_dict(weights=False), "model": self.model.net.state_dict()}
+        return {k: state[k] for k in POLICY_KEYS}
 
     RANK_STATE = ("rng", "agents", "hidden", "history", "tse")  # what differs between the ranks
 

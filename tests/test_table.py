@@ -666,7 +666,7 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     for bad, named in (
         (["--row", "+KG"], "preset 'smoke' has no row '+KG'; its rows: Random walk; LSTM A3C"),
         (["--row", "LSTM A3C", "--job", "1"], "--row picks the rows of a table to assemble"),
-        (["--row", "LSTM A3C", "--jobs"], "--jobs lists every job of the preset"),
+        (["--row", "LSTM A3C", "--jobs"], "--jobs, --job, --worker and --train-only assemble none"),
     ):
         assert main(smoke + from_zoo + bad) == 2
         err = capsys.readouterr().err.strip()
