@@ -13,9 +13,10 @@
     kgnavbench train --method NAME [--preset quick|paper [--spec FILE]] [--set KEY=VALUE] [--frames N]
                      [--seed S] [--kitchens A,B] [--runs DIR] [--record FILE.rrd] [--device auto|cpu|cuda]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR] [--workers N]
-                     [--jobs | --job N | --worker] [--trained DIR | --train-only] [--device auto|cpu|cuda]
+                     [--jobs | --job N | --worker] [--trained DIR | --train-only] [--row NAME ...]
+                     [--device auto|cpu|cuda]
     kgnavbench ship RUN_DIR [--zoo DIR] [--last]
-    kgnavbench figures [--preset quick] [--runs DIR] [--out DIR] [--trained DIR]
+    kgnavbench figures [--preset quick] [--runs DIR] [--out DIR] [--trained DIR] [--row NAME ...]
     kgnavbench view FILE.rrd
     kgnavbench encoder pretrain [--epochs N] [--samples-per-epoch N] [--shift PX] [--seed S] [--out FILE]
     kgnavbench encoder features [NAME ...]
@@ -335,7 +336,14 @@ def cmd_figures(args: argparse.Namespace) -> int:
     arguments.writable_folder(args.out, "--out")
     try:
         paths = figures_of_table(
-            args.preset, args.runs, args.out, args.spec, print, trained=args.trained, device=device
+            args.preset,
+            args.runs,
+            args.out,
+            args.spec,
+            print,
+            trained=args.trained,
+            device=device,
+            rows_named=tuple(args.row or ()),
         )
     except (FigureError, RecordError, TableError, TrainError) as e:
         raise UsageError(str(e)) from e
@@ -688,6 +696,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="take the preset's trained runs from DIR (zoo/), as `table --trained` does: evaluate what "
         "is not evaluated in --runs, never train",
+    )
+    p.add_argument(
+        "--row",
+        action="append",
+        metavar="NAME",
+        help="only this row of the preset, as named in the spec (repeatable); the others are neither "
+        "trained, evaluated nor drawn",
     )
     _device_option(p)
     p.add_argument("--out", type=Path, default=Path("docs/figures"), help="output folder (docs/figures)")

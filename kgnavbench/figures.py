@@ -837,17 +837,20 @@ def figures_of_table(
     progress=print,
     trained=None,
     device: str = "cpu",
+    rows_named: tuple[str, ...] = (),
 ) -> list[Path]:
     """The figures of a Table I preset's runs (run_table: finished runs are only reloaded, missing
     ones are trained and evaluated first; with `trained`, a folder such as zoo/, the trained runs come
-    from there and none is trained), from each row's first seed."""
+    from there and none is trained), from each row's first seed; `rows_named`: those rows only."""
     from . import table, table_spec  # lazily: the table stage imports the trainer
 
     spec = table_spec.load_spec(spec_path) if spec_path else table_spec.load_spec()
-    if trained is None and device == "cpu":
+    if trained is None and device == "cpu" and not rows_named:
         result = table.run_table(spec, preset, runs_dir, progress)
     else:  # a run trained on CUDA is another run (its device is in its config): the table's, as asked
         sources = table.Sources(None if trained is None else Path(trained))
-        result = table.run_table(spec, preset, runs_dir, progress, device=device, sources=sources)
+        result = table.run_table(
+            spec, preset, runs_dir, progress, device=device, sources=sources, rows_named=rows_named
+        )
     rows = [(r.row.name, r.train_runs[0] or None, r.eval_runs[0]) for r in result.rows]
     return figures(rows, out_dir, progress=progress)

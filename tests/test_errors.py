@@ -214,6 +214,15 @@ def test_figures_from_a_trained_folder_that_is_not_there_is_one_line(capsys, tmp
     assert not out.exists() and not runs.exists()  # refused before any folder is made
 
 
+def test_figures_of_a_row_the_preset_has_not_is_one_line(capsys, tmp_path):
+    out, runs = tmp_path / "figures", tmp_path / "runs"
+    code, _, err = run(
+        capsys, "figures", "--preset", "smoke", "--row", "nope", "--runs", str(runs), "--out", str(out)
+    )
+    assert_one_line_error(code, err, "preset 'smoke' has no row 'nope'")
+    assert not list(runs.glob("*/*")) and not list(out.glob("*"))  # nothing trained, evaluated or drawn
+
+
 def test_version(capsys):
     code, out, _ = run(capsys, "--version")
     assert code == 0 and out.startswith("kgnavbench 0.")

@@ -410,11 +410,23 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
 
     # --trained: the runs come from that folder (table.Sources), never trained
     taken = []
-    monkeypatch.setattr(table, "run_table", lambda *args, device, sources: taken.append(sources) or result)
+    monkeypatch.setattr(
+        table, "run_table", lambda *args, device, sources, rows_named: taken.append(sources) or result
+    )
     figures.figures_of_table(
         "smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append, trained=tmp_path
     )
     assert taken == [table.Sources(tmp_path)]
+
+    # --row: those rows only, as a partial table takes them
+    named = []
+    monkeypatch.setattr(
+        table, "run_table", lambda *args, device, sources, rows_named: named.append(rows_named) or result
+    )
+    figures.figures_of_table(
+        "smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append, rows_named=("LSTM A3C",)
+    )
+    assert named == [("LSTM A3C",)]
 
 
 def test_eval_video_writes_a_video_that_opencv_reads_back(capsys, tmp_path, floorplan1_tasks):
