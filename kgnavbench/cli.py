@@ -332,18 +332,31 @@ def cmd_figures(args: argparse.Namespace) -> int:
     if args.trained is not None and not args.trained.is_dir():
         raise UsageError(f"--trained {args.trained}: no such folder")
     device = arguments.device_name(args.device)
+    rows_named = tuple(args.row or ())
+    if rows_named:  # an unknown row is refused before any folder is made
+        from .table import only_rows
+        from .table_spec import SPEC_FILE, load_spec
+
+        try:
+            spec = load_spec(args.spec or SPEC_FILE)
+            if args.preset not in spec.presets:
+                raise TableError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
+            only_rows(spec, spec.presets[args.preset], rows_named)
+        except TableError as e:
+            raise UsageError(str(e)) from e
+    out = args.out / "partial" if rows_named else args.out  # never over the whole preset's figures
     arguments.writable_folder(args.runs, "--runs")
-    arguments.writable_folder(args.out, "--out")
+    arguments.writable_folder(out, "--out")
     try:
         paths = figures_of_table(
             args.preset,
             args.runs,
-            args.out,
+            out,
             args.spec,
             print,
             trained=args.trained,
             device=device,
-            rows_named=tuple(args.row or ()),
+            rows_named=rows_named,
         )
     except (FigureError, RecordError, TableError, TrainError) as e:
         raise UsageError(str(e)) from e
@@ -701,8 +714,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--row",
         action="append",
         metavar="NAME",
-        help="only this row of the preset, as named in the spec (repeatable); the others are neither "
-        "trained, evaluated nor drawn",
+        help="only this row of the preset, as named in the spec (repeatable): the others are neither "
+        "trained, evaluated nor drawn, and the figures go to OUT/partial/, never over the whole preset's",
     )
     _device_option(p)
     p.add_argument("--out", type=Path, default=Path("docs/figures"), help="output folder (docs/figures)")

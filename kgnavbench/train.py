@@ -608,6 +608,18 @@ def _read_metrics(path: Path, up_to: int) -> list[dict]:
     return rows
 
 
+def _seconds_at(rows: list[dict], frames: int) -> float | None:
+    """The training time metrics.csv's rows give at a frame count (a resume point), if one does."""
+    for row in reversed(rows):
+        try:
+            if int(row["frames"]) == frames:
+                seconds = float(row.get("seconds") or "nan")
+                return seconds if math.isfinite(seconds) and seconds >= 0 else None
+        except (KeyError, ValueError):
+            return None
+    return None
+
+
 def _csv_text(rows: list[dict]) -> str:
     out = io.StringIO()
     writer = csv.DictWriter(out, METRICS)
@@ -634,14 +646,16 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
         except (KeyError, ValueError, RuntimeError, TypeError) as e:
             raise TrainError(f"checkpoint {last} does not fit this run ({type(e).__name__}: {e})") from e
         progress(f"resumed {run.directory} from {last.name} at {trainer.frames:,} frames")
-    seconds_before = 0.0  # the training time of the sessions before a resume, from the rows it keeps
+    seconds_before = 0.0  # the training time of the sessions before a resume: the resume point's row's
     if ranks.main:
         kept = _read_metrics(metrics_path, trainer.frames)
         atomic_write(metrics_path, _csv_text(kept))
-        if kept and trainer.frames:
-            try:
-                seconds_before = float(kept[-1]["seconds"])
-            except ValueError:
+        if trainer.frames:
+            seconds_before = _seconds_at(kept, trainer.frames)
+            if seconds_before is None:
+                progress(
+                    f"{metrics_path} has no training time at {trainer.frames:,} frames; it counts from now"
+                )
                 seconds_before = 0.0
     every = options.log_every
     next_log = (trainer.frames // every + 1) * every

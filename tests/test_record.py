@@ -421,12 +421,14 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     # --row: those rows only, as a partial table takes them
     named = []
     monkeypatch.setattr(
-        table, "run_table", lambda *args, device, sources, rows_named: named.append(rows_named) or result
+        table,
+        "run_table",
+        lambda *args, device, sources, rows_named: named.append((device, sources, rows_named)) or result,
     )
     figures.figures_of_table(
         "smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append, rows_named=("LSTM A3C",)
     )
-    assert named == [("LSTM A3C",)]
+    assert named == [("cpu", table.Sources(), ("LSTM A3C",))]
 
 
 def test_eval_video_writes_a_video_that_opencv_reads_back(capsys, tmp_path, floorplan1_tasks):

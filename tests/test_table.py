@@ -627,7 +627,7 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
             "best.pt", "best.pt.sha256", "config.json", "finished.json", "metrics.csv"
         ]  # fmt: skip
         shipped_ck = runs.load_checkpoint(zoo / run.name / "best.pt")
-        assert "optimizer" not in shipped_ck and "agents" not in shipped_ck
+        assert list(shipped_ck) == list(runs.POLICY_KEYS)  # no optimiser, generators or agents
         config = json.loads((zoo / run.name / "config.json").read_text())
         config["training_code_sha256"], config["git_revision"] = "0" * 64, "0123456789abcdef"
         (zoo / run.name / "config.json").write_text(json.dumps(config))
@@ -660,6 +660,15 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     lstm = [line for line in _numbers(whole) if line.startswith("| LSTM A3C |")]
     assert lstm and [line for line in _numbers(partial) if line.startswith("| LSTM A3C |")] == lstm
     assert "| Random walk |" in whole and "| Random walk |" not in partial
+    # figures --row: that row's figures from the zoo, in OUT/partial/, nothing trained or evaluated
+    figs = tmp_path / "figs"
+    figures = ["figures", "--spec", str(spec_path), "--preset", "smoke", "--row", "LSTM A3C"]
+    assert main(figures + ["--out", str(figs), "--runs", str(shipped), "--trained", str(zoo)]) == 0
+    out = capsys.readouterr().out
+    assert "training lstm_a3c" not in out and f"{figs / 'partial' / 'training_curves.png'}" in out, out
+    assert sorted((shipped / "eval").iterdir()) == evaluations and [p.name for p in figs.iterdir()] == [
+        "partial"
+    ]
     for name in ("table1-smoke-partial.md", "table1-smoke-partial.tex", "table1-smoke-partial-ablation.csv"):
         assert "No comparison of the spec has both its rows in this table." in (shipped / name).read_text()
     assert (shipped / "table1-smoke.md").read_text() == whole  # never overwritten by a partial one
@@ -667,6 +676,8 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
         (["--row", "+KG"], "preset 'smoke' has no row '+KG'; its rows: Random walk; LSTM A3C"),
         (["--row", "LSTM A3C", "--job", "1"], "--row picks the rows of a table to assemble"),
         (["--row", "LSTM A3C", "--jobs"], "--jobs, --job, --worker and --train-only assemble none"),
+        (["--row", "LSTM A3C", "--worker"], "--row picks the rows of a table to assemble"),
+        (["--row", "LSTM A3C", "--train-only"], "--row picks the rows of a table to assemble"),
     ):
         assert main(smoke + from_zoo + bad) == 2
         err = capsys.readouterr().err.strip()

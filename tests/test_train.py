@@ -409,6 +409,8 @@ def test_killed_training_resumes_to_the_same_weights(tmp_path, hermetic_cache):
     assert [r.split(",")[0] for r in rows_a] == [r.split(",")[0] for r in rows_b]  # no row lost or doubled
     after = [float(r.split(",")[1]) for r in rows_b[1:] if int(r.split(",")[0]) > saved]
     assert after and all(100000.0 < s < 100000.0 + 120 for s in after), after
+    rates = [int(r.split(",")[2]) for r in rows_b[1:] if int(r.split(",")[0]) > saved]
+    assert all(rate > 100 for rate in rates), rates  # frames/s: the session's rate, not the whole run's
     assert 100000.0 < json.loads((run_b / "finished.json").read_text())["seconds"] < 100000.0 + 120
     # and a finished run is found, not retrained
     third = subprocess.run(cmd, capture_output=True, text=True, env=env)
@@ -833,7 +835,7 @@ def test_snapshots_are_kept_and_evaluated(capsys, tmp_path, floorplan1_tasks):
     kept = sorted(p.name for p in (run_dir / "snapshots").glob("*.pt"))
     assert kept == ["frames-140.pt", "frames-280.pt", "frames-420.pt"]
     snapshot = runs.load_checkpoint(run_dir / "snapshots" / "frames-280.pt")
-    assert snapshot["frames"] == 280 and "optimizer" not in snapshot and "model" in snapshot
+    assert snapshot["frames"] == 280 and list(snapshot) == list(runs.POLICY_KEYS)  # no optimiser, no agents
     base = ["eval", "--method", "lstm_a3c", "--run", str(run_dir), "--kitchens", "FloorPlan1"]
     base += ["--episodes", "1", "--runs", str(tmp_path), "--json"]
     assert main([*base, "--checkpoint", "frames-280"]) == 0
