@@ -42,7 +42,7 @@ from kgnavbench.arguments import frames as frame_count  # the CLI's parser: 10M,
 from kgnavbench.evaluate import EvalConfig, evaluate
 from kgnavbench.figures import curves_figure
 from kgnavbench.runs import train_method
-from kgnavbench.table_spec import load_spec
+from kgnavbench.table_spec import TableError, load_spec
 
 COLUMNS = (
     "row",
@@ -88,9 +88,10 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)  # one job per core, as the table's jobs (training: the preset's threads)
     spec = load_spec()
-    if args.preset not in spec.presets:
-        parser.error(f"unknown preset {args.preset!r}; the spec has {', '.join(spec.presets)}")
-    preset = spec.presets[args.preset]
+    try:
+        preset = spec.preset(args.preset)
+    except TableError as e:
+        parser.error(str(e))
     rows = {r.name: r for r in spec.rows}
     names = [n for n in args.rows.split(",") if n]
     unknown = [n for n in names if n not in rows]

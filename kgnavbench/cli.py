@@ -279,12 +279,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         from .table_spec import SPEC_FILE, TableError, load_spec
 
         try:
-            spec = load_spec(args.spec or SPEC_FILE)
+            preset = load_spec(args.spec or SPEC_FILE).preset(args.preset)
         except TableError as e:
             raise UsageError(str(e)) from e
-        if args.preset not in spec.presets:
-            raise UsageError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
-        preset = spec.presets[args.preset]
         options = {**preset.options, **options}
         frames = args.frames if args.frames is not None else preset.frames
         kitchens = kitchens or preset.train_kitchens
@@ -333,17 +330,14 @@ def cmd_figures(args: argparse.Namespace) -> int:
         raise UsageError(f"--trained {args.trained}: no such folder")
     device = arguments.device_name(args.device)
     rows_named = tuple(args.row or ())
-    if rows_named:  # an unknown row is refused before any folder is made
-        from .table import only_rows
-        from .table_spec import SPEC_FILE, load_spec
+    from .table import only_rows
+    from .table_spec import SPEC_FILE, load_spec
 
-        try:
-            spec = load_spec(args.spec or SPEC_FILE)
-            if args.preset not in spec.presets:
-                raise TableError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
-            only_rows(spec, spec.presets[args.preset], rows_named)
-        except TableError as e:
-            raise UsageError(str(e)) from e
+    try:  # a bad spec, an unknown preset or row is refused before any folder is made
+        spec = load_spec(args.spec or SPEC_FILE)
+        only_rows(spec, spec.preset(args.preset), rows_named)
+    except TableError as e:
+        raise UsageError(str(e)) from e
     out = args.out / "partial" if rows_named else args.out  # never over the whole preset's figures
     arguments.writable_folder(args.runs, "--runs")
     arguments.writable_folder(out, "--out")
@@ -412,8 +406,7 @@ def cmd_table(args: argparse.Namespace) -> int:
 
     try:
         spec = load_spec(args.spec or SPEC_FILE)
-        if args.preset not in spec.presets:
-            raise UsageError(f"unknown preset {args.preset!r}; {spec.path} has {', '.join(spec.presets)}")
+        spec.preset(args.preset)  # an unknown preset is refused before anything runs
         device = arguments.device_name(args.device)
         assembles = not args.jobs and args.job is None and not args.worker and not args.train_only
         if args.row and not assembles:

@@ -459,12 +459,6 @@ def only_rows(spec: TableSpec, preset: Preset, names: tuple[str, ...]) -> list[R
     return [row for row in rows if not names or row.name in names]
 
 
-def _preset(spec: TableSpec, preset_name: str) -> Preset:
-    if preset_name not in spec.presets:
-        raise TableError(f"unknown preset {preset_name!r}; {spec.path} has {', '.join(spec.presets)}")
-    return spec.presets[preset_name]
-
-
 def job_claim(
     runs_dir: Path | str, preset: Preset, n: int, row: Row, seed: int, sources: Sources = Sources()
 ) -> Path:
@@ -481,7 +475,7 @@ def job_claim(
 def job_commands(spec: TableSpec, preset_name: str, runs_dir: Path | str) -> list[str]:
     """One shell command per job (for a Slurm array, `xargs -P`, ssh loops): each trains and evaluates
     its row and seed into the shared runs folder; `kgnavbench table` after them only assembles."""
-    preset = _preset(spec, preset_name)
+    preset = spec.preset(preset_name)
     jobs = table_jobs(spec, preset)
     spec_option = (
         "" if Path(spec.path).resolve() == SPEC_FILE.resolve() else f" --spec {quote(str(spec.path))}"
@@ -503,7 +497,7 @@ def run_job(
     sources: Sources = Sources(),
 ) -> None:
     """Job `number` (from 1, as `job_commands` prints it): train (or find, or resume) and evaluate."""
-    preset = _preset(spec, preset_name)
+    preset = spec.preset(preset_name)
     jobs = table_jobs(spec, preset)
     if not 1 <= number <= len(jobs):
         raise TableError(f"preset {preset.name!r} has jobs 1..{len(jobs)}, not {number}")
@@ -524,7 +518,7 @@ def run_worker(
     the numbers (from 1) of the jobs this worker ran. Several workers, on this machine or on others
     that share `runs_dir`, split the jobs between them (`claims`: a job is claimed by one worker; a
     dead worker's claim on this host is taken over)."""
-    preset = _preset(spec, preset_name)
+    preset = spec.preset(preset_name)
     jobs = table_jobs(spec, preset)
     ran = []
     for n, (row, seed) in enumerate(jobs):
@@ -562,7 +556,7 @@ def run_table(
     else one thread, each). A job's options, threads among them, come from the spec alone, so with
     `threads` in the preset the runs and the table are the same whatever the number of workers; only
     the wall time differs."""
-    preset = _preset(spec, preset_name)
+    preset = spec.preset(preset_name)
     if workers < 1:
         raise TableError(f"workers must be at least 1, got {workers}")
     runs_dir = Path(runs_dir)

@@ -111,6 +111,12 @@ class TableSpec:
     rows: tuple[Row, ...]
     comparisons: tuple[Comparison, ...] = ()
 
+    def preset(self, name: str) -> Preset:
+        """The preset called `name`; a TableError naming the spec's presets otherwise."""
+        if name not in self.presets:
+            raise TableError(f"unknown preset {name!r}; {self.path} has {', '.join(self.presets)}")
+        return self.presets[name]
+
 
 def _field(where: str, table: dict, key: str, kind, default=None, required=True):
     """table[key] checked against kind; a TableError naming `where.key` otherwise."""

@@ -223,6 +223,20 @@ def test_figures_of_a_row_the_preset_has_not_is_one_line(capsys, tmp_path):
     assert not runs.exists() and not out.exists()  # refused before any folder is made
 
 
+def test_an_unknown_preset_is_one_line_naming_the_spec_presets_in_every_command(capsys, tmp_path):
+    """train, table and figures all refuse it with the same line (TableSpec.preset), before work."""
+    out, runs = tmp_path / "out", tmp_path / "runs"
+    for argv in (
+        ["train", "--method", "lstm_a3c", "--preset", "huge"],
+        ["table", "--preset", "huge", "--out", str(out)],
+        ["figures", "--preset", "huge", "--out", str(out)],
+        ["figures", "--preset", "huge", "--row", "+KG", "--out", str(out)],
+    ):
+        code, _, err = run(capsys, *argv, "--runs", str(runs))
+        assert_one_line_error(code, err, "unknown preset 'huge'", "has smoke, quick")
+    assert not runs.exists() and not out.exists()
+
+
 def test_version(capsys):
     code, out, _ = run(capsys, "--version")
     assert code == 0 and out.startswith("kgnavbench 0.")
