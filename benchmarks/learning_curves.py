@@ -87,8 +87,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="OUT.csv and OUT.png (default: print only)")
     args = parser.parse_args()
     torch.set_num_threads(1)  # one job per core, as the table's jobs (training: the preset's threads)
-    spec = load_spec()
     try:
+        spec = load_spec()
         preset = spec.preset(args.preset)
     except TableError as e:
         parser.error(str(e))

@@ -324,18 +324,19 @@ def cmd_figures(args: argparse.Namespace) -> int:
     from .figures import FigureError, figures_of_table
     from .record import RecordError
     from .runs import TrainError
-    from .table_spec import TableError
+    from .table_spec import SPEC_FILE, TableError, load_spec
 
     if args.trained is not None and not args.trained.is_dir():
         raise UsageError(f"--trained {args.trained}: no such folder")
     device = arguments.device_name(args.device)
     rows_named = tuple(args.row or ())
-    from .table import only_rows
-    from .table_spec import SPEC_FILE, load_spec
-
     try:  # a bad spec, an unknown preset or row is refused before any folder is made
         spec = load_spec(args.spec or SPEC_FILE)
-        only_rows(spec, spec.preset(args.preset), rows_named)
+        preset = spec.preset(args.preset)
+        if rows_named:
+            from .table import only_rows
+
+            only_rows(spec, preset, rows_named)
     except TableError as e:
         raise UsageError(str(e)) from e
     out = args.out / "partial" if rows_named else args.out  # never over the whole preset's figures

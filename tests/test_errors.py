@@ -234,7 +234,7 @@ def test_an_unknown_preset_is_one_line_naming_the_spec_presets_in_every_command(
     ):
         code, _, err = run(capsys, *argv, "--runs", str(runs))
         assert_one_line_error(code, err, "unknown preset 'huge'", "has smoke, quick")
-    assert not runs.exists() and not out.exists()
+        assert not runs.exists() and not out.exists(), argv
 
 
 def test_version(capsys):
