@@ -594,6 +594,13 @@ def standard_error(sr: float, episodes: int) -> float:
     return 100.0 * math.sqrt(p * (1.0 - p) / max(episodes, 1))
 
 
+def within_one_standard_error(val_sr: float, val_max: float, episodes: int) -> bool:
+    """Table I's checkpoint rule read with its standard error: a validation SR within one standard
+    error of the best so far (val_max, this one included) selects its checkpoint as best.pt, so the
+    latest such checkpoint is the one kept (docs/learning.md)."""
+    return val_sr >= val_max - standard_error(val_max, episodes)
+
+
 def _read_metrics(path: Path, up_to: int) -> list[dict]:
     """The rows of metrics.csv up to a frame count (a resumed run drops what it will redo)."""
     if not path.exists():
@@ -698,8 +705,7 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
             tv = time.perf_counter()
             val_sr, val_spl, val_frames, val_episodes = trainer.validate()
             trainer.val_max = max(trainer.val_max, val_sr)
-            val_se = standard_error(trainer.val_max, val_episodes)
-            selected = val_sr >= trainer.val_max - val_se
+            selected = within_one_standard_error(val_sr, trainer.val_max, val_episodes)
             progress(
                 f"  validation: SR {val_sr:.1f}% (standard error {standard_error(val_sr, val_episodes):.1f}, "
                 f"{val_episodes} episodes), SPL {val_spl:.1f}% ({val_frames:,} frames in "

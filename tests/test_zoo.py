@@ -1,0 +1,49 @@
+"""The committed zoo/ is whole: every shipped run loads with its checksum, its best.pt is the
+checkpoint Table I's rule picks from its own metrics.csv, zoo/README.md lists exactly the folders
+there, and the whole zoo stays under the 80 MB the repository allows it."""
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from kgnavbench import runs
+from kgnavbench.train import within_one_standard_error
+
+ZOO = Path(__file__).resolve().parents[1] / "zoo"
+SHIPPED = sorted(p for p in ZOO.iterdir() if p.is_dir() and not p.name.startswith("."))
+
+
+def test_the_zoo_is_listed_in_its_readme_and_under_80_mb():
+    listed = re.findall(r"^\| `([a-z0-9_]+-[0-9a-f]{10})` \|", (ZOO / "README.md").read_text(), re.M)
+    assert sorted(listed) == [p.name for p in SHIPPED]  # each once, none missing, none extra
+    size = sum(f.stat().st_size for f in ZOO.rglob("*") if f.is_file())
+    assert size < 80e6, f"zoo/ is {size / 1e6:.1f} MB"
+
+
+@pytest.mark.parametrize("run", SHIPPED, ids=[p.name for p in SHIPPED])
+def test_a_shipped_run_loads_and_its_best_pt_is_the_rules_pick(run):
+    files = {p.name for p in run.iterdir()}
+    assert {"config.json", "metrics.csv", "finished.json", "best.pt", "best.pt.sha256"} <= files
+    assert files <= {"config.json", "metrics.csv", "finished.json", "best.pt", "best.pt.sha256", "last.pt",
+                     "last.pt.sha256"}, files  # fmt: skip
+    config = json.loads((run / "config.json").read_text())
+    finished = json.loads((run / "finished.json").read_text())
+    assert run.name.startswith(config["method"] + "-") and finished["frames"] >= config["frames"]
+    best = runs.load_checkpoint(run / "best.pt")  # checksummed
+    assert sorted(best) == sorted(runs.POLICY_KEYS)  # weights only: no optimiser, generators or agents
+    assert best["seed"] == config["seed"] and best["kitchens"] == config["kitchens"]
+    # replay the rule over the validations metrics.csv records: the latest within one standard error
+    # of the best so far
+    val_max, picked = -1.0, None
+    with open(run / "metrics.csv") as f:
+        for row in csv.DictReader(f):
+            if row["val_sr"]:
+                val_max = max(val_max, float(row["val_sr"]))
+                if within_one_standard_error(float(row["val_sr"]), val_max, int(row["val_episodes"])):
+                    picked, picked_sr = int(row["frames"]), float(row["val_sr"])
+    assert best["frames"] == picked and finished["best_val_sr"] == pytest.approx(picked_sr, abs=0.01)
+    if (run / "last.pt").exists():
+        assert runs.load_checkpoint(run / "last.pt")["frames"] == finished["frames"]
