@@ -36,14 +36,19 @@ def test_a_shipped_run_loads_and_its_best_pt_is_the_rules_pick(run):
     assert sorted(best) == sorted(runs.POLICY_KEYS)  # weights only: no optimiser, generators or agents
     assert best["seed"] == config["seed"] and best["kitchens"] == config["kitchens"]
     # replay the rule over the validations metrics.csv records: the latest within one standard error
-    # of the best so far
+    # of the best so far. metrics.csv rounds SR to 2 decimals and the trainer compared the exact
+    # successes / episodes, which the rounded SR still gives (a step of 100/episodes is >> 0.01):
+    # with the rounded 0.13 (1 of 745) the standard error 0.1320 puts 0.00 within the rule, with
+    # the exact 0.1342 (standard error 0.1341) it does not (zoo/imitation-3562ce88cc)
     val_max, picked = -1.0, None
     with open(run / "metrics.csv") as f:
         for row in csv.DictReader(f):
             if row["val_sr"]:
-                val_max = max(val_max, float(row["val_sr"]))
-                if within_one_standard_error(float(row["val_sr"]), val_max, int(row["val_episodes"])):
-                    picked, picked_sr = int(row["frames"]), float(row["val_sr"])
+                episodes = int(row["val_episodes"])
+                val_sr = 100.0 * round(float(row["val_sr"]) * episodes / 100.0) / episodes
+                val_max = max(val_max, val_sr)
+                if within_one_standard_error(val_sr, val_max, episodes):
+                    picked, picked_sr = int(row["frames"]), val_sr
     assert best["frames"] == picked and finished["best_val_sr"] == pytest.approx(picked_sr, abs=0.01)
     if (run / "last.pt").exists():
         assert runs.load_checkpoint(run / "last.pt")["frames"] == finished["frames"]
