@@ -24,6 +24,7 @@ sample. `tests/test_models.py` checks both against a literal per-sample implemen
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -33,6 +34,9 @@ from torch import Tensor, nn
 
 from .encoder import FEATURE_DIM, N_TYPES, Encoder
 from .world import ACTIONS
+
+# oneDNN's bf16 kernels (AVX512-BF16 or AMX); see ActorCritic._lstm
+_CPU_HAS_BF16 = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 N_ACTIONS = len(ACTIONS)
 
@@ -431,7 +435,12 @@ class ActorCritic(nn.Module):
         dtype = cell.weight_ih.dtype
         joint, h, c = joint.to(dtype).contiguous(), h.to(dtype)[None], c.to(dtype)[None]
         training = torch.is_grad_enabled()  # no workspace for a backward pass that will not come
-        return torch.lstm(joint, (h, c), weights, True, 1, 0.0, training, False, False)
+        # CPU autocast runs torch.lstm in bf16, and oneDNN has no bf16 LSTM primitive on a CPU without
+        # native bf16 (an AVX2-only AMD EPYC: "could not create a primitive descriptor"); there the
+        # LSTM runs in fp32 and the rest of the network stays under autocast.
+        fp32_lstm = joint.device.type == "cpu" and not _CPU_HAS_BF16 and torch.is_autocast_enabled("cpu")
+        with torch.autocast("cpu", enabled=False) if fp32_lstm else contextlib.nullcontext():
+            return torch.lstm(joint, (h, c), weights, True, 1, 0.0, training, False, False)
 
     def heads(self, h: Tensor) -> tuple[Tensor, Tensor]:
         """Policy logits and value from LSTM outputs h (..., lstm): one product for both MLPs' first
