@@ -279,13 +279,18 @@ def bar_line_figure(
     bar_ticks = _ticks(0.0, max(max(finite), 0.0) * 1.05)
     finite = [v for v in line if math.isfinite(v)] or [1.0]
     line_ticks = _ticks(min(0.0, min(finite)), max(finite) * 1.05)
-    ax = _Axes(img, 100, 80, width - 100, height - 110, (0, len(labels)), (bar_ticks[0], bar_ticks[-1]))
+    slot = (width - 200) / len(labels)
+    # every word of each name (the control row's takes 4 lines): the plot gives up the room they need
+    wrapped = [_wrap(label, int(slot) - 6, 0.45) for label in labels]
+    extra = 18 * max(0, max(len(names) for names in wrapped) - 3)
+    ax = _Axes(
+        img, 100, 80, width - 100, height - 110 - extra, (0, len(labels)), (bar_ticks[0], bar_ticks[-1])
+    )
     line_colour = PALETTE[1]
     ax.y_axis(bar_ticks, bar_label, "left")
     ax.y_axis(line_ticks, line_label, "right", line_colour, grid=False)
-    slot = (ax.right - ax.left) / len(labels)
     points, values = [], []
-    for i, (label, b, v) in enumerate(zip(labels, bars, line)):
+    for i, (names, b, v) in enumerate(zip(wrapped, bars, line)):
         cx = int(ax.left + (i + 0.5) * slot)
         if math.isfinite(b):
             _, top = ax.px(0, b)
@@ -293,7 +298,6 @@ def bar_line_figure(
             cv2.rectangle(img, (cx - half, top), (cx + half, ax.bottom), PALETTE[0], -1)
         if math.isfinite(v):
             points.append((cx, ax.px(0, v, (line_ticks[0], line_ticks[-1]))[1]))
-        names = _wrap(label, int(slot) - 6, 0.45)[:3]
         for k, text in enumerate(names):
             _text(img, text, (cx, ax.bottom + 10 + 18 * k), 0.45, align="centre", valign="top")
         values.append((cx, ax.bottom + 14 + 18 * len(names), b, v))
