@@ -279,13 +279,12 @@ def bar_line_figure(
     bar_ticks = _ticks(0.0, max(max(finite), 0.0) * 1.05)
     finite = [v for v in line if math.isfinite(v)] or [1.0]
     line_ticks = _ticks(min(0.0, min(finite)), max(finite) * 1.05)
-    slot = (width - 200) / len(labels)
+    left, right = 100, width - 100
+    slot = (right - left) / len(labels)
     # every word of each name (the control row's takes 4 lines): the plot gives up the room they need
     wrapped = [_wrap(label, int(slot) - 6, 0.45) for label in labels]
     extra = 18 * max(0, max(len(names) for names in wrapped) - 3)
-    ax = _Axes(
-        img, 100, 80, width - 100, height - 110 - extra, (0, len(labels)), (bar_ticks[0], bar_ticks[-1])
-    )
+    ax = _Axes(img, left, 80, right, height - 110 - extra, (0, len(labels)), (bar_ticks[0], bar_ticks[-1]))
     line_colour = PALETTE[1]
     ax.y_axis(bar_ticks, bar_label, "left")
     ax.y_axis(line_ticks, line_label, "right", line_colour, grid=False)
