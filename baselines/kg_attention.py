@@ -31,6 +31,10 @@ class Config(TrainOptions):
     attention_nodes: str = "visible"
     kg_graph: str = "accumulated"  # or "per_step"
     gcn: int = 128  # GCN width per layer
+    # the accumulated graph's edge weights: "binary" (ever seen together), "ppmi" or "counts"
+    kg_edges: str = "binary"
+    # "pooled" (a d-wide mean or attention pool of Q) or "nodes" (the paper's |V|-wide vectors)
+    kg_readout: str = "pooled"
 
     def check(self) -> None:
         super().check()
@@ -46,6 +50,8 @@ def model_config(config: Config) -> ModelConfig:
         hidden=config.hidden,
         lstm=config.lstm,
         gcn=config.gcn,
+        kg_edges=config.kg_edges,
+        kg_readout=config.kg_readout,
         pixels=config.pixels,
     )
 

@@ -61,7 +61,7 @@ class Model:
     def adjacency(self) -> torch.Tensor | None:
         if not self.uses_graph:
             return None
-        return torch.as_tensor(np.asarray(self.covis.adjacency()), dtype=torch.float32).to(self.device)
+        return self.covis.adjacency(self.config.kg_edges).to(self.device)
 
     def graph(self):
         """The knowledge graph's per-update terms (models.GraphTerms), computed once for all the steps

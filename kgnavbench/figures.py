@@ -700,7 +700,7 @@ def _attention_model(train_dir: Path) -> tuple[str, str] | None:
 
 def gcn_node_features(ck: dict, where="checkpoint") -> tuple[torch.Tensor, torch.Tensor]:
     """The third GCN layer's node features H (125, d) of a KG checkpoint over its accumulated
-    co-visibility graph, and that graph's 0/1 adjacency (125, 125)."""
+    co-visibility graph, and that graph's adjacency (125, 125) with the edge weights it trained on."""
     from . import models  # lazily, as above
 
     try:
@@ -711,7 +711,7 @@ def gcn_node_features(ck: dict, where="checkpoint") -> tuple[torch.Tensor, torch
     except (RuntimeError, KeyError, TypeError, ValueError) as e:
         raise FigureError(f"{where} does not fit its model ({first_line(e)})") from e
     net.eval()
-    adjacency = covis.adjacency()
+    adjacency = covis.adjacency(net.cfg.kg_edges)
     with torch.no_grad():
         h = net.kg.node_features(models.normalized_adjacency(adjacency))
     return h.float(), adjacency

@@ -73,6 +73,16 @@ class ModelConfig:
     # the control row of the graph: the LSTM row gains the detections the KG rows see, R_t and R_g,
     # through one layer ReLU(W_d [R_t, R_g]) as wide as the graph's pooled Q, with no GCN (kg "none")
     detections: bool = False
+    # the accumulated graph's edge weights (`CoVisibility.adjacency`): "binary" (ever seen together;
+    # the first reading, whose three GCN layers collapse every node onto one direction), "ppmi"
+    # (positive pointwise mutual information of the co-visibility counts) or "counts" (the counts over
+    # their maximum)
+    kg_edges: str = "binary"
+    # what the graph hands the LSTM: "pooled" (the first reading: the mean or attention-weighted mean
+    # of Q over R_z, (B, gcn)) or "nodes" (the paper's |V|-dimensional vectors: +KG one scalar of Q per
+    # R_z node, +KG+Attention H_a itself, the softmax over R_z of scores conditioned on Q and on the
+    # fused view and target I_t; (B, 125), zero outside R_z)
+    kg_readout: str = "pooled"
 
     def validate(self) -> None:
         choices = {
@@ -80,6 +90,8 @@ class ModelConfig:
             "kg": ("none", "mean", "attention"),
             "kg_graph": ("accumulated", "per_step"),
             "attention_nodes": ("visible", "all"),
+            "kg_edges": EDGE_WEIGHTS,
+            "kg_readout": ("pooled", "nodes"),
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -97,6 +109,20 @@ class ModelConfig:
                 raise ModelError(f"ModelConfig.{name}={getattr(self, name)!r}: expected true or false")
         if self.detections and self.kg != "none":
             raise ModelError("ModelConfig.detections is the graph's control: it takes kg='none'")
+        if self.kg_readout == "nodes" and self.kg != "none":
+            if self.kg_graph != "accumulated":
+                raise ModelError("ModelConfig.kg_readout='nodes' takes kg_graph='accumulated'")
+            if self.kg == "attention" and self.attention_nodes != "visible":
+                raise ModelError("ModelConfig.kg_readout='nodes' takes attention_nodes='visible'")
+
+    def kg_width(self) -> int:
+        """The width of what the graph (or its control row) adds to the LSTM's input."""
+        if self.kg == "none":
+            return self.gcn if self.detections else 0
+        return N_TYPES if self.kg_readout == "nodes" else self.gcn
+
+
+EDGE_WEIGHTS = ("binary", "ppmi", "counts")
 
 
 def normalized_adjacency(a: Tensor) -> Tensor:
@@ -136,11 +162,27 @@ class CoVisibility:
         pairs.fill_diagonal_(0)
         self.counts += pairs
 
-    def adjacency(self) -> Tensor:
-        """(125, 125) float32 0/1: an edge where two types were ever seen together; no self loops."""
-        a = (self.counts > 0).float()
-        a.fill_diagonal_(0)
-        return a
+    def adjacency(self, edges: str = "binary") -> Tensor:
+        """(125, 125) float32, symmetric, no self loops, zero where two types were never seen together.
+        edges "binary": 1 on every pair ever seen together. "ppmi": max(0, log(c_ij S / (c_i c_j))) with
+        c_i = sum_j c_ij and S = sum_i c_i, the co-occurrence PMI of word vectors: a pair seen together
+        no more often than its types' frequencies predict gets no edge, so the frequent types do not
+        tie every node to every other. "counts": c_ij / max c."""
+        if edges not in EDGE_WEIGHTS:
+            raise ModelError(f"edges={edges!r}: expected one of {', '.join(EDGE_WEIGHTS)}")
+        c = self.counts.clone()
+        c.fill_diagonal_(0)
+        if edges == "binary":
+            a = (c > 0).double()
+        elif edges == "counts":
+            a = c / c.max() if c.max() > 0 else c
+        else:
+            row = c.sum(1)
+            total = row.sum()
+            expected = torch.outer(row, row) / total.clamp_min(1)
+            pmi = torch.log(c / expected.clamp_min(1e-300))
+            a = torch.where(c > 0, pmi.clamp_min(0), torch.zeros_like(c))
+        return a.float()
 
     def state_dict(self) -> dict:
         return {"counts": self.counts.clone()}
@@ -168,6 +210,9 @@ class GraphTerms:
     d1: Tensor
     d2: Tensor
     scores: tuple[Tensor, Tensor, Tensor, Tensor] | None
+    # kg_readout "nodes": +KG's u . Q_i + b as (c0 scalar, e1 (125,), e2 (125,)); +KG+Attention's
+    # W1 Q_i + b1 as (W1 base + b1 (d,), W1 D1 (125, d), W1 D2 (125, d)) (`KnowledgeGraph.readout_terms`)
+    readout: tuple[Tensor, Tensor, Tensor] | None = None
 
 
 class KnowledgeGraph(nn.Module):
@@ -179,6 +224,8 @@ class KnowledgeGraph(nn.Module):
         d = cfg.gcn
         self.per_step, self.attention = cfg.kg_graph == "per_step", cfg.kg == "attention"
         self.all_nodes = cfg.attention_nodes == "all"
+        self.nodes = cfg.kg_readout == "nodes"
+        self.edges = cfg.kg_edges
         # H(0) = I, so the first layer's Â H(0) W(0) is Â W(0): W(0) is one row per type
         self.w0 = nn.Parameter(torch.randn(n_types, d) * (2 / n_types) ** 0.5)
         self.w1 = nn.Parameter(torch.randn(d, d) * (2 / d) ** 0.5)
@@ -188,6 +235,10 @@ class KnowledgeGraph(nn.Module):
         if self.attention:
             self.score_hidden = nn.Linear(d, d)  # W1
             self.score = nn.Linear(d, 1)  # w2
+            if self.nodes:  # W_c: the scores see the fused view and target I_t beside each node's Q
+                self.score_context = nn.Linear(cfg.hidden, d, bias=False)
+        elif self.nodes:
+            self.node_readout = nn.Linear(d, 1)  # u, b: one scalar of Q per node (+KG)
 
     def node_features(self, a_hat: Tensor) -> Tensor:
         """H = the 3-layer GCN over Â (125, 125) -> (125, d)."""
@@ -220,16 +271,56 @@ class KnowledgeGraph(nn.Module):
             raise ModelError("kg_graph='per_step' has no per-update graph terms")
         node_features = self.node_features(normalized_adjacency(adjacency.to(self.w0.dtype)))
         base, d1, d2 = self.q_terms(node_features)  # d1, d2: (125, d)
+        if self.nodes:
+            return GraphTerms(node_features, base, d1, d2, None, self.readout_terms(base, d1, d2))
         scores = self.kind_scores(base, d1, d2) if self.attention else None  # (125,) each
         return GraphTerms(node_features, base, d1, d2, scores)
 
+    def readout_terms(self, base: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The linear first step of the "nodes" readout on Q_i = base + R_t,i D1_i + R_g,i D2_i, split
+        the same way: +KG+Attention's W1 Q_i + b1, +KG's u . Q_i + b (GraphTerms.readout)."""
+        if self.attention:
+            w = self.score_hidden.weight
+            return self.score_hidden(base), d1 @ w.T, d2 @ w.T
+        u = self.node_readout.weight[0]
+        return self.node_readout(base)[0], d1 @ u, d2 @ u
+
+    def node_readout_of(self, r_t: Tensor, r_g: Tensor, terms: GraphTerms, context: Tensor) -> Tensor:
+        """kg_readout "nodes" -> (B, 125), zero outside R_z. +KG: u . Q_i + b per R_z node.
+        +KG+Attention: H_a = the softmax over R_z of w2 . ReLU(W1 Q_i + W_c I_t + b1) + b2, I_t the
+        fused view and target (context). The scores are computed for the R_z nodes only (a sample sees
+        about ten), never as a (B, 125, d) tensor."""
+        r_z = torch.maximum(r_t, r_g)
+        first, e1, e2 = terms.readout
+        if not self.attention:
+            return r_z * first + r_t * e1 + r_g * e2
+        rows, nodes = r_z.nonzero(as_tuple=True)
+        pre = (
+            first
+            + r_t[rows, nodes].unsqueeze(-1).to(e1.dtype) * e1[nodes]
+            + r_g[rows, nodes].unsqueeze(-1).to(e2.dtype) * e2[nodes]
+            + self.score_context(context)[rows]
+        )
+        picked = self.score(F.relu(pre)).squeeze(-1)
+        scores = torch.zeros(r_z.shape, dtype=picked.dtype, device=picked.device)
+        scores = scores.index_put((rows, nodes), picked)
+        return masked_softmax(scores, r_z)
+
     def forward(
-        self, r_t: Tensor, r_g: Tensor, graph: Tensor | GraphTerms | None
+        self, r_t: Tensor, r_g: Tensor, graph: Tensor | GraphTerms | None, context: Tensor | None = None
     ) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """r_t, r_g: (B, 125) 0/1 float; graph: the accumulated graph, as its (125, 125) adjacency or
-        as its `graph_terms` (None per step). Returns the pooled Q (B, d), attention (B, 125) or None,
-        and the node features H (125, d) of the accumulated graph (None per step)."""
+        as its `graph_terms` (None per step); context: the fused view and target I_t (B, hidden), which
+        the "nodes" readout's attention scores see. Returns what the LSTM gets (the pooled Q (B, d), or
+        the "nodes" readout (B, 125)), attention (B, 125) or None, and the node features H (125, d) of
+        the accumulated graph (None per step)."""
         r_z = torch.maximum(r_t, r_g)
+        if self.nodes:
+            if graph is None or context is None:
+                raise ModelError("kg_readout='nodes' needs the accumulated graph and the fused I_t")
+            terms = graph if isinstance(graph, GraphTerms) else self.graph_terms(graph)
+            out = self.node_readout_of(r_t, r_g, terms, context)
+            return out, (out if self.attention else None), terms.node_features
         both, t_only, g_only = r_t * r_g, r_t * (1 - r_g), (1 - r_t) * r_g
         if self.per_step:
             # the clique over R_z: every R_z row of Â is 1/|R_z| on the R_z columns, so every layer
@@ -289,7 +380,7 @@ class ActorCritic(nn.Module):
         self.fusion = nn.Linear(2 * cfg.hidden, cfg.hidden)  # W_f
         self.kg = KnowledgeGraph(cfg, n_types) if cfg.kg != "none" else None
         self.detections = nn.Linear(2 * n_types, cfg.gcn) if cfg.detections else None  # W_d
-        joint = cfg.hidden + (cfg.gcn if self.kg is not None or self.detections is not None else 0)
+        joint = cfg.hidden + cfg.kg_width()
         if cfg.arch == "lstm":
             self.lstm = nn.LSTMCell(joint, cfg.lstm)
             # the policy and value MLPs' first layers side by side: one matrix product for both
@@ -390,7 +481,7 @@ class ActorCritic(nn.Module):
         if self.kg is not None:
             r_t = (view_objects > 0).to(self.kg.w0.dtype)
             r_g = (target_objects > 0).to(self.kg.w0.dtype)
-            pooled, attention, node_features = self.kg(r_t, r_g, graph)
+            pooled, attention, node_features = self.kg(r_t, r_g, graph, context=joint)
             joint = torch.cat([joint, pooled.to(joint.dtype)], 1)
         elif self.detections is not None:
             r = torch.cat([view_objects, target_objects], 1) > 0

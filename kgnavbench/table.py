@@ -168,6 +168,9 @@ class Sources:
 # what a run's config.json must share with a row's job to be that job's run in a `trained` folder; the
 # code's hashes are left out: a shipped run stays usable after later changes to the training code
 TRAINED_RUN_KEYS = ("method", "options", "frames", "seed", "kitchens", "world_size", "device")
+# options a plugin gained after runs were shipped, with the value that reproduces how those runs
+# trained: a shipped run's config without the option is read as having that value
+ADDED_OPTIONS = {"kg_edges": "binary", "kg_readout": "pooled"}
 
 
 def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Path:
@@ -190,7 +193,10 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Pa
             continue
         differ = [key for key in TRAINED_RUN_KEYS if config.get(key) != want[key]]
         if isinstance(config.get("options"), dict) and "options" in differ:
-            options = config["options"]
+            options = {
+                **{k: v for k, v in ADDED_OPTIONS.items() if k in want["options"]},
+                **config["options"],
+            }
             differ.remove("options")
             differ += [
                 f"options.{k}"
