@@ -148,18 +148,20 @@ class Model:
         return logits.float().view(n, b, -1), values.float().view(n, b)
 
 
-def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, seed: int):
+def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, seed: int, scene=None):
     """Run fixed episodes (target rows, start states) to the end with the model's sampled actions;
-    returns SR and SPL in percent and the frames taken. FF's scene-specific layers: the first training
-    kitchen's (the validation kitchens have none of their own)."""
+    returns SR and SPL in percent and the frames taken. FF needs `scene`, each episode's
+    training-kitchen index: its scene-specific layers exist for its training kitchens only."""
     n = len(targets)
+    if model.config.arch == "ff" and scene is None:
+        raise ValueError("FF's episodes need their training kitchens' scene indices")
     nav = Navigators(space, space.target_kitchen[targets])
     nav.begin(np.arange(n), targets, starts, cap)
     generator = torch.Generator(model.device).manual_seed(seed)
     hidden = model.net.initial_state(n, model.device)
     ff = model.config.arch == "ff"
     history = np.repeat(starts[:, None], model.config.history, 1) if ff else None
-    scene = np.zeros(n, np.int64)
+    scene = np.asarray(scene, np.int64) if ff else None
     live = np.ones(n, bool)
     frames = 0
     with torch.no_grad():

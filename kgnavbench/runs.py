@@ -357,6 +357,43 @@ POLICY_KEYS = (
 )  # fmt: skip
 
 
+# a run stops within one update of its frames (at most 2,800 frames past them in the paper preset)
+FRAMES_PAST_THE_RUN = 100_000
+
+
+def checkpoint_differences(ck: dict, config: dict) -> list[str]:
+    """What a checkpoint records that is not the run of `config` (its config.json, `run_record`): its
+    method, every option, kitchens and seed, each named with both values, and frames that are not a
+    whole number from 0 to the run's frames (FRAMES_PAST_THE_RUN past them at most). Empty when the
+    checkpoint is that run's. (+IL+TSE and LSTM A3C share method and model and differ in options.)"""
+    out = []
+    for key in ("method", "kitchens", "seed"):
+        mine, theirs = ck.get(key), config.get(key)
+        if key == "kitchens" and isinstance(mine, (list, tuple)) and isinstance(theirs, (list, tuple)):
+            mine, theirs = list(mine), list(theirs)
+        if mine != theirs:
+            out.append(f"{key} {ck.get(key)!r} (config.json: {config.get(key)!r})")
+    ck_options, options = ck.get("options"), config.get("options")
+    if not isinstance(ck_options, dict) or not isinstance(options, dict):
+        out.append("options (not a table of options)")
+    else:
+        out += [
+            f"option {k} {ck_options.get(k)!r} (config.json: {options.get(k)!r})"
+            for k in sorted({*ck_options, *options})
+            if ck_options.get(k) != options.get(k)
+        ]
+    frames, limit = ck.get("frames"), config.get("frames")
+    if not isinstance(limit, int) or isinstance(limit, bool):
+        out.append(f"config.json's frames {limit!r} (not a whole number)")
+    elif (
+        not isinstance(frames, int)
+        or isinstance(frames, bool)
+        or not 0 <= frames <= limit + FRAMES_PAST_THE_RUN
+    ):
+        out.append(f"frames {frames!r} (the run trains {limit:,})")
+    return out
+
+
 def save_checkpoint(path: Path, state: dict) -> None:
     """Write a checkpoint atomically, with its sha256 beside it (PATH.sha256): a crash leaves the old one
     or the new one, never half of one, and a checkpoint changed afterwards is refused when loaded."""

@@ -171,6 +171,8 @@ TRAINED_RUN_KEYS = ("method", "options", "frames", "seed", "kitchens", "world_si
 # options a plugin gained after runs were shipped, with the value that reproduces how those runs
 # trained: a shipped run's config without the option is read as having that value
 ADDED_OPTIONS = {"kg_edges": "binary", "kg_readout": "pooled"}
+# options that change no weight of a run (how often it keeps snapshots): not compared
+UNWEIGHTED_OPTIONS = ("keep_every",)
 
 
 def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Path:
@@ -200,7 +202,7 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Pa
             differ.remove("options")
             differ += [
                 f"options.{k}"
-                for k in sorted({*options, *want["options"]})
+                for k in sorted({*options, *want["options"]} - set(UNWEIGHTED_OPTIONS))
                 if options.get(k) != want["options"].get(k)
             ]
         if differ:
@@ -792,7 +794,11 @@ def _seeds_text(n: int) -> str:
 
 
 CHECKPOINT_TEXT = {
-    "best_val_sr": "the checkpoint with the best validation SR",
+    "best_val_sr": (
+        "the checkpoint with the best validation SR (ties to the later; FF A3C, whose scene-specific "
+        "layers exist for its training kitchens only, validated on their seen targets from training "
+        "starts that are no fixed episode's)"
+    ),
     "last": "each run's final weights (last.pt), not the paper's rule of the best validation SR",
 }
 

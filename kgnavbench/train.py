@@ -12,9 +12,9 @@ top to bottom:
    episode and LSTM state, the co-visibility counts): a run killed at any moment resumes from
    `last.pt` exactly as if it had never stopped. Under torchrun each rank holds its share of the
    agents (kgnavbench/distributed.py).
-2. `learn`: the loop, `metrics.csv`, progress lines, `last.pt`, `best.pt` (Table I's checkpoint rule:
-   the best validation SR, read with its standard error: the latest checkpoint whose validation SR is
-   within one standard error of the best so far) and, with keep_every, weight snapshots.
+2. `learn`: the loop, `metrics.csv`, progress lines, `last.pt`, `best.pt` (Table I's checkpoint rule,
+   the paper's words: the checkpoint with the highest validation SR, ties to the later one) and, with
+   keep_every, weight snapshots.
 A trained checkpoint becomes a plugin policy in the next stage, kgnavbench/policy.py.
 """
 
@@ -61,6 +61,7 @@ from .runs import (
     Run,
     TrainError,
     TrainOptions,
+    checkpoint_differences,
     load_checkpoint,
     save_checkpoint,
 )
@@ -68,6 +69,13 @@ from .tasks import load_task_file
 from .vecenv import NavigationVectorEnv, StateSpace, build_space, curriculum_reach
 
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
+# FF A3C is validated where its scene-specific heads exist: its own training kitchens' seen targets,
+# evaluate's cap for them, from start states drawn with this seed offset, never a fixed episode's start
+SEEN_VALIDATION_CAP = 100
+# how best.pt was chosen, in finished.json: runs finished before it was written (no "best_rule") kept
+# the latest checkpoint within one standard error of the best so far (`within_one_standard_error`)
+BEST_RULE = "highest validation SR, ties to the later"
+FF_VALIDATION_SEED = 0xFFA3C
 METRICS = (
     "frames",
     "seconds",  # training time of the whole run, the sessions before a resume included
@@ -514,8 +522,35 @@ class Trainer:
         rows = [(r, s) for r, starts in enumerate(sp.fixed_starts) for s in starts[: self.opts.val_episodes]]
         targets = np.array([r for r, _ in rows], np.int64)
         starts = np.array([s for _, s in rows], np.int64)
+        if self.ff:
+            targets, starts = self.ff_validation_episodes(len(rows))
+            scene = self.space.target_kitchen[targets]
+            sr, spl, frames = run_episodes(
+                self.model, self.space, targets, starts, SEEN_VALIDATION_CAP, self.run.seed, scene
+            )
+            return sr, spl, frames, len(targets)
         sr, spl, frames = run_episodes(self.model, sp, targets, starts, VALIDATION_CAP, self.run.seed)
         return sr, spl, frames, len(rows)
+
+    def ff_validation_episodes(self, at_least: int) -> tuple[np.ndarray, np.ndarray]:
+        """FF A3C's validation episodes (Zhu et al. had no validation rooms, and its heads exist for its
+        training kitchens only): every seen target of its training kitchens, as many episodes each as
+        make at least `at_least` in all (the other rows' validation count), from training starts drawn
+        with the run's own seed, never a fixed evaluation episode's start. The same every time."""
+        sp = self.space
+        per_target = -(-at_least // len(sp.target_ids))
+        rng = np.random.default_rng([FF_VALIDATION_SEED, self.run.seed])
+        targets, starts = [], []
+        for r in range(len(sp.target_ids)):
+            pool = sp.start_flat[sp.start_ptr[r] : sp.start_ptr[r + 1]]
+            pool = pool[~np.isin(pool, sp.fixed_starts[r])]
+            if len(pool) == 0:
+                raise TrainError(
+                    f"target {sp.target_ids[r]} has no training start outside the fixed episodes"
+                )
+            starts.append(rng.choice(pool, per_target, replace=len(pool) < per_target))
+            targets.append(np.full(per_target, r, np.int64))
+        return np.concatenate(targets), np.concatenate(starts).astype(np.int64)
 
     # -- checkpoints -----------------------------------------------------------------------------
     def state_dict(self, weights: bool = True) -> dict:
@@ -595,9 +630,9 @@ def standard_error(sr: float, episodes: int) -> float:
 
 
 def within_one_standard_error(val_sr: float, val_max: float, episodes: int) -> bool:
-    """Table I's checkpoint rule read with its standard error: a validation SR within one standard
-    error of the best so far (val_max, this one included) selects its checkpoint as best.pt, so the
-    latest such checkpoint is the one kept (docs/learning.md)."""
+    """The one-standard-error reading of the checkpoint rule, as a replay over metrics.csv (the trainer
+    keeps the best, the paper's words): a validation SR within one standard error of the best so far
+    (val_max, this one included) would select its checkpoint, the latest such one kept."""
     return val_sr >= val_max - standard_error(val_max, episodes)
 
 
@@ -646,8 +681,21 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
     metrics_path = run.directory / "metrics.csv"
     if last.exists():
         ck = load_checkpoint(last)
-        if ck["options"] != asdict(options) or ck["model_config"] != asdict(trainer.model_config):
-            raise TrainError(f"{last} was trained with another config; delete {run.directory} to start over")
+        record = {
+            "method": run.method,
+            "options": asdict(options),
+            "kitchens": list(trainer.kitchens),
+            "seed": run.seed,
+            "frames": run.frames,
+        }
+        differ = checkpoint_differences(ck, record)
+        if ck["model_config"] != asdict(trainer.model_config):
+            differ.append("model_config")
+        if differ:
+            raise TrainError(
+                f"{last} is not this run's checkpoint (it differs in {'; '.join(differ[:4])}); "
+                f"delete {run.directory} to start over"
+            )
         try:
             trainer.load_state_dict(ck)
         except (KeyError, ValueError, RuntimeError, TypeError) as e:
@@ -705,7 +753,7 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
             tv = time.perf_counter()
             val_sr, val_spl, val_frames, val_episodes = trainer.validate()
             trainer.val_max = max(trainer.val_max, val_sr)
-            selected = within_one_standard_error(val_sr, trainer.val_max, val_episodes)
+            selected = val_sr >= trainer.best_val_sr  # the paper's rule: the best; ties to the later
             progress(
                 f"  validation: SR {val_sr:.1f}% (standard error {standard_error(val_sr, val_episodes):.1f}, "
                 f"{val_episodes} episodes), SPL {val_spl:.1f}% ({val_frames:,} frames in "
@@ -738,7 +786,15 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
         return run.directory
     atomic_write(
         run.directory / "finished.json",
-        json.dumps({"frames": trainer.frames, "best_val_sr": trainer.best_val_sr, "seconds": seconds}) + "\n",
+        json.dumps(
+            {
+                "frames": trainer.frames,
+                "best_val_sr": trainer.best_val_sr,
+                "best_rule": BEST_RULE,
+                "seconds": seconds,
+            }
+        )
+        + "\n",
     )
     progress(
         f"finished {run.method}: {trainer.frames:,} frames, best validation SR {trainer.best_val_sr:.1f}%"

@@ -2,6 +2,7 @@
 literal per-sample implementation, every network's shapes, the co-visibility graph, the committed
 encoder and the per-state feature cache."""
 
+import math
 import os
 
 import numpy as np
@@ -178,6 +179,86 @@ def test_closed_form_kg_branch_equals_the_literal_equations(kg, graph):
             assert torch.allclose(w, w[0].expand_as(w), atol=1e-7)
     else:  # nothing in view or target: nothing pooled
         assert torch.equal(fast[0], torch.zeros_like(fast[0]))
+
+
+def literal_nodes_readout(kg: models.KnowledgeGraph, r_t, r_g, adjacency, context):
+    """kg_readout "nodes", per sample and node, as docs/models.md writes it: Q_i as in literal_kg;
+    +KG: u . Q_i + b on the R_z nodes, 0 elsewhere; +KG+Attention: H_a = the softmax over R_z of
+    w2 . ReLU(W1 Q_i + W_c I_t + b1) + b2, 0 elsewhere."""
+    b, n = r_t.shape
+    r_z = torch.maximum(r_t, r_g)
+    h = torch.eye(n)
+    for w in (kg.w0, kg.w1, kg.w2):
+        h = F.relu(normalized_adjacency(adjacency) @ h @ w)
+    out = []
+    for i in range(b):
+        q = kg.spatial_fusion(
+            torch.cat(
+                [
+                    F.relu(kg.spatial_siamese(r_t[i][:, None] * h)),
+                    F.relu(kg.spatial_siamese(r_g[i][:, None] * h)),
+                ],
+                1,
+            )
+        )
+        row = torch.zeros(n)
+        if kg.attention:
+            pre = kg.score_hidden(q) + kg.score_context(context[i])
+            scores = kg.score(F.relu(pre)).squeeze(-1)
+            keep = r_z[i] > 0
+            if keep.any():
+                row[keep] = torch.softmax(scores[keep], 0)
+        else:
+            row = r_z[i] * kg.node_readout(q).squeeze(-1)
+        out.append(row)
+    return torch.stack(out)
+
+
+@pytest.mark.parametrize("kg", ["mean", "attention"])
+@pytest.mark.parametrize("edges", ["binary", "ppmi"])
+def test_nodes_readout_equals_the_literal_equations(kg, edges):
+    torch.manual_seed(0)
+    cfg = ModelConfig(kg=kg, kg_readout="nodes", kg_edges=edges)
+    model = make_model(cfg)
+    with torch.no_grad():  # nonzero biases; larger weights, so that the nodes' scores differ
+        for p in model.kg.parameters():
+            p.uniform_(-0.5, 0.5) if p.dim() == 1 else p.mul_(3)
+    x = inputs(cfg, b=8, seed=3)
+    r_t, r_g = x["view_objects"].float(), x["target_objects"].float()
+    context = torch.randn(8, cfg.hidden)
+    adjacency = x["graph"] if edges == "binary" else x["graph"] * (1 + torch.rand(N_TYPES, N_TYPES)).triu(1)
+    adjacency = torch.maximum(adjacency, adjacency.T)  # weighted, symmetric
+    fast, attention, node_features = model.kg(r_t, r_g, adjacency, context=context)
+    slow = literal_nodes_readout(model.kg, r_t, r_g, adjacency, context)
+    assert fast.shape == (8, N_TYPES) and node_features.shape == (N_TYPES, cfg.gcn)
+    assert torch.allclose(fast, slow, atol=1e-5, rtol=1e-4)
+    r_z = (r_t > 0) | (r_g > 0)
+    assert torch.equal(fast[~r_z], torch.zeros_like(fast[~r_z]))  # one slot per object, 0 off R_z
+    if kg == "attention":
+        assert attention is fast
+        assert torch.allclose(fast[1:].sum(1), torch.ones(7), atol=1e-5) and fast[0].sum() == 0
+        # the scores see the view: another I_t gives other weights over the same objects
+        other, _, _ = model.kg(r_t, r_g, adjacency, context=context + torch.randn(8, cfg.hidden))
+        assert not torch.allclose(other[1:], fast[1:], atol=1e-4)
+    else:
+        assert attention is None
+    # the whole network: the LSTM reads [I_t, the readout], 256 + 125 wide, and every weight learns
+    logits, value, _, extras = model(**x, state=None)
+    assert model.lstm.input_size == cfg.hidden + N_TYPES
+    (logits.square().sum() + value.sum()).backward()
+    assert all(p.grad is not None for p in model.parameters())
+    graph = model.graph_terms(x["graph"])
+    assert torch.equal(model(**{**x, "graph": graph}, state=None)[0], logits)
+
+
+def test_nodes_readout_takes_the_accumulated_graph_and_visible_nodes():
+    with pytest.raises(ModelError, match="kg_graph='accumulated'"):
+        make_model(ModelConfig(kg="mean", kg_readout="nodes", kg_graph="per_step"))
+    with pytest.raises(ModelError, match="attention_nodes='visible'"):
+        make_model(ModelConfig(kg="attention", kg_readout="nodes", attention_nodes="all"))
+    for field, value in [("kg_readout", "sum"), ("kg_edges", "pmi")]:
+        with pytest.raises(ModelError, match=f"ModelConfig.{field}"):
+            make_model(ModelConfig(kg="mean", **{field: value}))
 
 
 @pytest.mark.parametrize("kg", ["mean", "attention"])
@@ -359,6 +440,24 @@ def test_covisibility_counts_pairs_seen_together():
     assert torch.equal(other.counts, covis.counts) and other.counts[1, 2] == 3
     with pytest.raises(ModelError, match="co-visibility"):
         other.load_state_dict({"counts": torch.zeros(3, 3)})
+
+
+def test_covisibility_edge_weights_by_hand():
+    covis = CoVisibility(n_types=4)
+    counts = torch.tensor([[0, 6, 1, 0], [6, 0, 1, 0], [1, 1, 0, 2], [0, 0, 2, 0]], dtype=torch.float64)
+    covis.counts = counts.clone()
+    row, total = counts.sum(1), counts.sum()  # (7, 7, 4, 2), 20
+    ppmi = covis.adjacency("ppmi").double()
+    # 0-1: log(6 * 20 / 49) > 0; 0-2: log(1 * 20 / 28) < 0, no edge; 2-3: log(2 * 20 / 8) > 0
+    assert ppmi[0, 1] == pytest.approx(math.log(6 * 20 / 49), rel=1e-6)
+    assert ppmi[2, 3] == pytest.approx(math.log(2 * 20 / 8), rel=1e-6)
+    assert ppmi[0, 2] == 0 and ppmi[0, 3] == 0 and torch.equal(ppmi, ppmi.T)
+    assert ppmi.diagonal().sum() == 0 and row.sum() == total
+    assert torch.equal(covis.adjacency("counts"), (counts / 6).float())
+    assert torch.equal(covis.adjacency(), (counts > 0).float())
+    assert torch.equal(CoVisibility(n_types=4).adjacency("ppmi"), torch.zeros(4, 4))  # nothing seen
+    with pytest.raises(ModelError, match="edges='pmi'"):
+        covis.adjacency("pmi")
 
 
 # ------------------------------------------------------------------------------------------------
