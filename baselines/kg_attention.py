@@ -35,6 +35,8 @@ class Config(TrainOptions):
     kg_edges: str = "binary"
     # "pooled" (a d-wide mean or attention pool of Q) or "nodes" (the paper's |V|-wide vectors)
     kg_readout: str = "pooled"
+    # "nodes" attention: the scores see the fused view and target I_t too (false: Q alone)
+    attention_context: bool = True
 
     def check(self) -> None:
         super().check()
@@ -52,6 +54,7 @@ def model_config(config: Config) -> ModelConfig:
         gcn=config.gcn,
         kg_edges=config.kg_edges,
         kg_readout=config.kg_readout,
+        attention_context=config.attention_context,
         pixels=config.pixels,
     )
 

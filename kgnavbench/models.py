@@ -83,6 +83,9 @@ class ModelConfig:
     # R_z node, +KG+Attention H_a itself, the softmax over R_z of scores conditioned on Q and on the
     # fused view and target I_t; (B, 125), zero outside R_z)
     kg_readout: str = "pooled"
+    # the "nodes" readout's attention scores see the fused view and target I_t beside each node's Q
+    # (false: Q alone, which depends on the view and the target through R_t and R_g only)
+    attention_context: bool = True
 
     def validate(self) -> None:
         choices = {
@@ -104,7 +107,7 @@ class ModelConfig:
                 not isinstance(value, int) or isinstance(value, bool) or value < 1
             ):
                 raise ModelError(f"ModelConfig.{f.name}={value!r}: expected a positive integer")
-        for name in ("pixels", "detections"):
+        for name in ("pixels", "detections", "attention_context"):
             if not isinstance(getattr(self, name), bool):
                 raise ModelError(f"ModelConfig.{name}={getattr(self, name)!r}: expected true or false")
         if self.detections and self.kg != "none":
@@ -235,7 +238,7 @@ class KnowledgeGraph(nn.Module):
         if self.attention:
             self.score_hidden = nn.Linear(d, d)  # W1
             self.score = nn.Linear(d, 1)  # w2
-            if self.nodes:  # W_c: the scores see the fused view and target I_t beside each node's Q
+            if self.nodes and cfg.attention_context:  # W_c: the scores see I_t beside each node's Q
                 self.score_context = nn.Linear(cfg.hidden, d, bias=False)
         elif self.nodes:
             self.node_readout = nn.Linear(d, 1)  # u, b: one scalar of Q per node (+KG)
@@ -295,12 +298,14 @@ class KnowledgeGraph(nn.Module):
         if not self.attention:
             return r_z * first + r_t * e1 + r_g * e2
         rows, nodes = r_z.nonzero(as_tuple=True)
-        pre = (
-            first
-            + r_t[rows, nodes].unsqueeze(-1).to(e1.dtype) * e1[nodes]
-            + r_g[rows, nodes].unsqueeze(-1).to(e2.dtype) * e2[nodes]
-            + self.score_context(context)[rows]
-        )
+        # W1 Q_i + b1 of an R_z node in the view only, in the target only, in both: (3 * 125, d); one
+        # index_select per term (its backward an index_add, cheaper than advanced indexing's)
+        kinds = torch.cat([first + e1, first + e2, first + e1 + e2])
+        kind = (r_t[rows, nodes] + 2 * r_g[rows, nodes] - 1).long()  # 0, 1, 2
+        n = r_z.shape[1]
+        pre = kinds.index_select(0, kind * n + nodes)
+        if hasattr(self, "score_context"):
+            pre = pre + self.score_context(context).index_select(0, rows)
         picked = self.score(F.relu(pre)).squeeze(-1)
         scores = torch.zeros(r_z.shape, dtype=picked.dtype, device=picked.device)
         scores = scores.index_put((rows, nodes), picked)
