@@ -1,11 +1,13 @@
 """KG + attention: the paper's method. The LSTM A3C agent (trained with IL and TSE) gains a
 knowledge graph of the 125 object types and attention over the objects in view.
 
-Table I's rows "+KG" (attention=false: the mean of the spatial features Q over the objects visible in
-the view or the target) and "+KG+Attention" (attention=true: a masked softmax over those objects).
-The graph (kg_graph): "accumulated" co-visibility of types in the agent's own training frames (saved
-in checkpoints), or "per_step", the clique over the objects in view or in the target. See
-kgnavbench.models for the equations and DESIGN.md "Learned agents".
+Table I's rows "+KG" (attention=false: one scalar of the spatial features Q per object visible in the
+view or the target, a 125-wide vector) and "+KG+Attention" (attention=true: H_a, the softmax over
+those objects of scores from Q and the fused view and target). The graph (kg_graph): "accumulated"
+co-visibility of types in the agent's own training frames (saved in checkpoints; kg_edges weighs its
+edges), or "per_step", the clique over the objects in view or in the target (with kg_readout
+"pooled"). kg_edges="binary", kg_readout="pooled" is our first reading. See docs/models.md for the
+equations against the paper's.
 
     kgnavbench train --method kg_attention --frames 10000000
     kgnavbench eval --method kg_attention --run runs/train/kg_attention-...
@@ -31,10 +33,13 @@ class Config(TrainOptions):
     attention_nodes: str = "visible"
     kg_graph: str = "accumulated"  # or "per_step"
     gcn: int = 128  # GCN width per layer
-    # the accumulated graph's edge weights: "binary" (ever seen together), "ppmi" or "counts"
-    kg_edges: str = "binary"
-    # "pooled" (a d-wide mean or attention pool of Q) or "nodes" (the paper's |V|-wide vectors)
-    kg_readout: str = "pooled"
+    # the accumulated graph's edge weights: "ppmi" (positive PMI of the co-visibility counts, chosen
+    # by the diagnostics of benchmarks/gcn_smoothing.py), "binary" (ever seen together: the first
+    # reading, one-dimensional after three layers) or "counts"
+    kg_edges: str = "ppmi"
+    # "nodes" (the paper's |V|-wide vectors) or "pooled" (the first reading: a 128-wide mean or
+    # attention pool of Q)
+    kg_readout: str = "nodes"
     # "nodes" attention: the scores see the fused view and target I_t too (false: Q alone)
     attention_context: bool = True
 
