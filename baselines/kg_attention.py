@@ -42,6 +42,8 @@ class Config(TrainOptions):
     kg_readout: str = "nodes"
     # "nodes" attention: the scores see the fused view and target I_t too (false: Q alone)
     attention_context: bool = True
+    attention_heads: int = 1  # "nodes" attention: k softmaxes over the same objects (1: the paper's)
+    gcn_norm: str = "none"  # "pair": PairNorm after each GCN layer (against over-smoothing)
 
     def check(self) -> None:
         super().check()
@@ -60,6 +62,8 @@ def model_config(config: Config) -> ModelConfig:
         kg_edges=config.kg_edges,
         kg_readout=config.kg_readout,
         attention_context=config.attention_context,
+        attention_heads=config.attention_heads,
+        gcn_norm=config.gcn_norm,
         pixels=config.pixels,
     )
 

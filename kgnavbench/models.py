@@ -86,6 +86,13 @@ class ModelConfig:
     # the "nodes" readout's attention scores see the fused view and target I_t beside each node's Q
     # (false: Q alone, which depends on the view and the target through R_t and R_g only)
     attention_context: bool = True
+    # the "nodes" readout's attention heads: k softmaxes over R_z, each from its own score layer w2,
+    # H_a (B, k * 125) into the LSTM (1: the paper's one H_a)
+    attention_heads: int = 1
+    # after each GCN layer's propagation, before its ReLU: "none" (the paper's eq. 1) or "pair"
+    # (PairNorm, Zhao and Akoglu 2020: the nodes' features centred and scaled to a mean squared row norm
+    # of 1, against the over-smoothing that makes every node's row alike)
+    gcn_norm: str = "none"
 
     def validate(self) -> None:
         choices = {
@@ -95,6 +102,7 @@ class ModelConfig:
             "attention_nodes": ("visible", "all"),
             "kg_edges": EDGE_WEIGHTS,
             "kg_readout": ("pooled", "nodes"),
+            "gcn_norm": ("none", "pair"),
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -117,12 +125,16 @@ class ModelConfig:
                 raise ModelError("ModelConfig.kg_readout='nodes' takes kg_graph='accumulated'")
             if self.kg == "attention" and self.attention_nodes != "visible":
                 raise ModelError("ModelConfig.kg_readout='nodes' takes attention_nodes='visible'")
+        if self.attention_heads > 1 and (self.kg != "attention" or self.kg_readout != "nodes"):
+            raise ModelError("ModelConfig.attention_heads > 1 takes kg='attention', kg_readout='nodes'")
 
     def kg_width(self) -> int:
         """The width of what the graph (or its control row) adds to the LSTM's input."""
         if self.kg == "none":
             return self.gcn if self.detections else 0
-        return N_TYPES if self.kg_readout == "nodes" else self.gcn
+        if self.kg_readout == "nodes":
+            return N_TYPES * (self.attention_heads if self.kg == "attention" else 1)
+        return self.gcn
 
 
 EDGE_WEIGHTS = ("binary", "ppmi", "counts")
@@ -133,6 +145,13 @@ def normalized_adjacency(a: Tensor) -> Tensor:
     a_plus = a + torch.eye(a.shape[-1], dtype=a.dtype, device=a.device)
     d = a_plus.sum(-1).rsqrt()
     return d.unsqueeze(-1) * a_plus * d.unsqueeze(-2)
+
+
+def pair_norm(x: Tensor) -> Tensor:
+    """PairNorm (Zhao and Akoglu 2020) of node features x (n, d): centred over the nodes, then scaled
+    so that the mean squared row norm is 1 (the total pairwise distance stays fixed layer to layer)."""
+    x = x - x.mean(0)
+    return x / x.square().sum(1).mean().add(1e-6).sqrt()
 
 
 def masked_softmax(scores: Tensor, mask: Tensor) -> Tensor:
@@ -229,6 +248,8 @@ class KnowledgeGraph(nn.Module):
         self.all_nodes = cfg.attention_nodes == "all"
         self.nodes = cfg.kg_readout == "nodes"
         self.edges = cfg.kg_edges
+        self.heads = cfg.attention_heads
+        self.norm = pair_norm if cfg.gcn_norm == "pair" else (lambda x: x)
         # H(0) = I, so the first layer's Â H(0) W(0) is Â W(0): W(0) is one row per type
         self.w0 = nn.Parameter(torch.randn(n_types, d) * (2 / n_types) ** 0.5)
         self.w1 = nn.Parameter(torch.randn(d, d) * (2 / d) ** 0.5)
@@ -237,7 +258,7 @@ class KnowledgeGraph(nn.Module):
         self.spatial_fusion = nn.Linear(2 * d, d)  # W'_f
         if self.attention:
             self.score_hidden = nn.Linear(d, d)  # W1
-            self.score = nn.Linear(d, 1)  # w2
+            self.score = nn.Linear(d, cfg.attention_heads)  # w2, one per head
             if self.nodes and cfg.attention_context:  # W_c: the scores see I_t beside each node's Q
                 self.score_context = nn.Linear(cfg.hidden, d, bias=False)
         elif self.nodes:
@@ -245,9 +266,9 @@ class KnowledgeGraph(nn.Module):
 
     def node_features(self, a_hat: Tensor) -> Tensor:
         """H = the 3-layer GCN over Â (125, 125) -> (125, d)."""
-        h = F.relu(a_hat @ self.w0)
-        h = F.relu(a_hat @ (h @ self.w1))
-        return F.relu(a_hat @ (h @ self.w2))
+        h = F.relu(self.norm(a_hat @ self.w0))
+        h = F.relu(self.norm(a_hat @ (h @ self.w1)))
+        return F.relu(self.norm(a_hat @ (h @ self.w2)))
 
     def q_terms(self, h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Q of a node whose GCN row is h (..., d): base + R_t D1 + R_g D2 -> base (d,), D1, D2 (..., d).
@@ -306,10 +327,12 @@ class KnowledgeGraph(nn.Module):
         pre = kinds.index_select(0, kind * n + nodes)
         if hasattr(self, "score_context"):
             pre = pre + self.score_context(context).index_select(0, rows)
-        picked = self.score(F.relu(pre)).squeeze(-1)
-        scores = torch.zeros(r_z.shape, dtype=picked.dtype, device=picked.device)
-        scores = scores.index_put((rows, nodes), picked)
-        return masked_softmax(scores, r_z)
+        picked = self.score(F.relu(pre))  # (nnz, heads)
+        b, k = r_z.shape[0], self.heads
+        scores = torch.zeros(b, n, k, dtype=picked.dtype, device=picked.device)
+        scores = scores.index_put((rows, nodes), picked).transpose(1, 2)  # (B, heads, 125)
+        weights = masked_softmax(scores, r_z[:, None, :])
+        return weights[:, 0] if k == 1 else weights.reshape(b, k * n)
 
     def forward(
         self, r_t: Tensor, r_g: Tensor, graph: Tensor | GraphTerms | None, context: Tensor | None = None
@@ -325,7 +348,10 @@ class KnowledgeGraph(nn.Module):
                 raise ModelError("kg_readout='nodes' needs the accumulated graph and the fused I_t")
             terms = graph if isinstance(graph, GraphTerms) else self.graph_terms(graph)
             out = self.node_readout_of(r_t, r_g, terms, context)
-            return out, (out if self.attention else None), terms.node_features
+            attention = None
+            if self.attention:  # (B, 125): with several heads, their mean (a distribution too)
+                attention = out if self.heads == 1 else out.view(len(out), self.heads, -1).mean(1)
+            return out, attention, terms.node_features
         both, t_only, g_only = r_t * r_g, r_t * (1 - r_g), (1 - r_t) * r_g
         if self.per_step:
             # the clique over R_z: every R_z row of Â is 1/|R_z| on the R_z columns, so every layer

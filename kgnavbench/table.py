@@ -170,7 +170,13 @@ class Sources:
 TRAINED_RUN_KEYS = ("method", "options", "frames", "seed", "kitchens", "world_size", "device")
 # options a plugin gained after runs were shipped, with the value that reproduces how those runs
 # trained: a shipped run's config without the option is read as having that value
-ADDED_OPTIONS = {"kg_edges": "binary", "kg_readout": "pooled", "attention_context": True}
+ADDED_OPTIONS = {
+    "kg_edges": "binary",
+    "kg_readout": "pooled",
+    "attention_context": True,
+    "attention_heads": 1,
+    "gcn_norm": "none",
+}
 # options that change no weight of a run (how often it keeps snapshots): not compared
 UNWEIGHTED_OPTIONS = ("keep_every",)
 

@@ -189,7 +189,10 @@ def literal_nodes_readout(kg: models.KnowledgeGraph, r_t, r_g, adjacency, contex
     r_z = torch.maximum(r_t, r_g)
     h = torch.eye(n)
     for w in (kg.w0, kg.w1, kg.w2):
-        h = F.relu(normalized_adjacency(adjacency) @ h @ w)
+        h = normalized_adjacency(adjacency) @ h @ w
+        if kg.norm is models.pair_norm:  # centred over the nodes, mean squared row norm 1
+            h = (h - h.mean(0)) / ((h - h.mean(0)).square().sum(1).mean() + 1e-6).sqrt()
+        h = F.relu(h)
     out = []
     for i in range(b):
         q = kg.spatial_fusion(
@@ -204,23 +207,33 @@ def literal_nodes_readout(kg: models.KnowledgeGraph, r_t, r_g, adjacency, contex
         row = torch.zeros(n)
         if kg.attention:
             pre = kg.score_hidden(q) + (kg.score_context(context[i]) if hasattr(kg, "score_context") else 0)
-            scores = kg.score(F.relu(pre)).squeeze(-1)
+            scores = kg.score(F.relu(pre))  # (125, heads)
             keep = r_z[i] > 0
-            if keep.any():
-                row[keep] = torch.softmax(scores[keep], 0)
+            row = torch.zeros(kg.heads, n)
+            for head in range(kg.heads):
+                if keep.any():
+                    row[head, keep] = torch.softmax(scores[keep, head], 0)
+            row = row.reshape(-1)
         else:
             row = r_z[i] * kg.node_readout(q).squeeze(-1)
         out.append(row)
     return torch.stack(out)
 
 
-@pytest.mark.parametrize("kg", ["mean", "attention", "attention on Q alone"])
+@pytest.mark.parametrize("kg", ["mean", "attention", "attention on Q alone", "attention, 3 heads, PairNorm"])
 @pytest.mark.parametrize("edges", ["binary", "ppmi"])
 def test_nodes_readout_equals_the_literal_equations(kg, edges):
     torch.manual_seed(0)
-    q_alone = kg == "attention on Q alone"
-    kg = "attention" if q_alone else kg
-    cfg = ModelConfig(kg=kg, kg_readout="nodes", kg_edges=edges, attention_context=not q_alone)
+    q_alone, heads = kg == "attention on Q alone", 3 if "heads" in kg else 1
+    cfg = ModelConfig(
+        kg="mean" if kg == "mean" else "attention",
+        kg_readout="nodes",
+        kg_edges=edges,
+        attention_context=not q_alone,
+        attention_heads=heads,
+        gcn_norm="pair" if "PairNorm" in kg else "none",
+    )
+    kg = cfg.kg
     model = make_model(cfg)
     with torch.no_grad():  # nonzero biases; larger weights, so that the nodes' scores differ
         for p in model.kg.parameters():
@@ -232,21 +245,25 @@ def test_nodes_readout_equals_the_literal_equations(kg, edges):
     adjacency = torch.maximum(adjacency, adjacency.T)  # weighted, symmetric
     fast, attention, node_features = model.kg(r_t, r_g, adjacency, context=context)
     slow = literal_nodes_readout(model.kg, r_t, r_g, adjacency, context)
-    assert fast.shape == (8, N_TYPES) and node_features.shape == (N_TYPES, cfg.gcn)
+    assert fast.shape == (8, N_TYPES * heads) and node_features.shape == (N_TYPES, cfg.gcn)
     assert torch.allclose(fast, slow, atol=1e-5, rtol=1e-4)
     r_z = (r_t > 0) | (r_g > 0)
-    assert torch.equal(fast[~r_z], torch.zeros_like(fast[~r_z]))  # one slot per object, 0 off R_z
+    per_head = fast.view(8, heads, N_TYPES)
+    off = ~r_z[:, None, :].expand_as(per_head)
+    assert torch.equal(per_head[off], torch.zeros_like(per_head[off]))  # one slot per object, 0 off R_z
     if kg == "attention":
-        assert attention is fast
-        assert torch.allclose(fast[1:].sum(1), torch.ones(7), atol=1e-5) and fast[0].sum() == 0
+        assert torch.allclose(attention, per_head.mean(1))  # what recordings show: the heads' mean
+        sums = per_head.sum(2)
+        assert torch.allclose(sums[1:], torch.ones(7, heads), atol=1e-5) and fast[0].sum() == 0
+        fast = attention
         # the scores see the view (or not): another I_t gives other weights over the same objects
-        other, _, _ = model.kg(r_t, r_g, adjacency, context=context + torch.randn(8, cfg.hidden))
+        _, other, _ = model.kg(r_t, r_g, adjacency, context=context + torch.randn(8, cfg.hidden))
         assert torch.allclose(other[1:], fast[1:], atol=1e-4) == q_alone
     else:
         assert attention is None
     # the whole network: the LSTM reads [I_t, the readout], 256 + 125 wide, and every weight learns
     logits, value, _, extras = model(**x, state=None)
-    assert model.lstm.input_size == cfg.hidden + N_TYPES
+    assert model.lstm.input_size == cfg.hidden + N_TYPES * heads
     (logits.square().sum() + value.sum()).backward()
     assert all(p.grad is not None for p in model.parameters())
     graph = model.graph_terms(x["graph"])
@@ -258,7 +275,9 @@ def test_nodes_readout_takes_the_accumulated_graph_and_visible_nodes():
         make_model(ModelConfig(kg="mean", kg_readout="nodes", kg_graph="per_step"))
     with pytest.raises(ModelError, match="attention_nodes='visible'"):
         make_model(ModelConfig(kg="attention", kg_readout="nodes", attention_nodes="all"))
-    for field, value in [("kg_readout", "sum"), ("kg_edges", "pmi")]:
+    with pytest.raises(ModelError, match="attention_heads"):
+        make_model(ModelConfig(kg="attention", attention_heads=2))  # pooled: one softmax
+    for field, value in [("kg_readout", "sum"), ("kg_edges", "pmi"), ("gcn_norm", "batch")]:
         with pytest.raises(ModelError, match=f"ModelConfig.{field}"):
             make_model(ModelConfig(kg="mean", **{field: value}))
 
