@@ -137,7 +137,8 @@ class ModelConfig:
         return self.gcn
 
 
-EDGE_WEIGHTS = ("binary", "ppmi", "counts")
+EDGE_WEIGHTS = ("binary", "ppmi", "ppmi_top5", "counts")
+TOP_EDGES = 5  # "ppmi_top5": the strongest PPMI edges each node keeps
 
 
 def normalized_adjacency(a: Tensor) -> Tensor:
@@ -189,7 +190,8 @@ class CoVisibility:
         edges "binary": 1 on every pair ever seen together. "ppmi": max(0, log(c_ij S / (c_i c_j))) with
         c_i = sum_j c_ij and S = sum_i c_i, the co-occurrence PMI of word vectors: a pair seen together
         no more often than its types' frequencies predict gets no edge, so the frequent types do not
-        tie every node to every other. "counts": c_ij / max c."""
+        tie every node to every other. "ppmi_top5": the PPMI edges among each node's 5 strongest (an
+        edge either end keeps stays). "counts": c_ij / max c."""
         if edges not in EDGE_WEIGHTS:
             raise ModelError(f"edges={edges!r}: expected one of {', '.join(EDGE_WEIGHTS)}")
         c = self.counts.clone()
@@ -204,6 +206,10 @@ class CoVisibility:
             expected = torch.outer(row, row) / total.clamp_min(1)
             pmi = torch.log(c / expected.clamp_min(1e-300))
             a = torch.where(c > 0, pmi.clamp_min(0), torch.zeros_like(c))
+            if edges == "ppmi_top5":
+                keep = torch.zeros_like(a, dtype=torch.bool)
+                keep.scatter_(1, a.topk(min(TOP_EDGES, len(a)), dim=1).indices, True)
+                a = torch.where((keep | keep.T) & (a > 0), a, torch.zeros_like(a))
         return a.float()
 
     def state_dict(self) -> dict:

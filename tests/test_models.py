@@ -477,6 +477,18 @@ def test_covisibility_edge_weights_by_hand():
     assert torch.equal(covis.adjacency("counts"), (counts / 6).float())
     assert torch.equal(covis.adjacency(), (counts > 0).float())
     assert torch.equal(CoVisibility(n_types=4).adjacency("ppmi"), torch.zeros(4, 4))  # nothing seen
+    # the 5 strongest edges per node: an edge stays where it is among the 5 strongest of either end
+    dense = CoVisibility(n_types=12)
+    counts = torch.randint(0, 40, (12, 12), generator=torch.Generator().manual_seed(0)).double()
+    dense.counts = counts + counts.T
+    full, top = dense.adjacency("ppmi"), dense.adjacency("ppmi_top5")
+    assert torch.equal(top, top.T) and torch.equal(top[top > 0], full[top > 0])
+    strongest = full.topk(5, dim=1).indices
+    for i in range(12):
+        for j in range(12):
+            kept = j in strongest[i].tolist() or i in strongest[j].tolist()
+            assert (top[i, j] > 0) == (kept and full[i, j] > 0)
+    assert (top > 0).sum() < (full > 0).sum()
     with pytest.raises(ModelError, match="edges='pmi'"):
         covis.adjacency("pmi")
 
