@@ -379,8 +379,11 @@ def read_weights(config: EvalConfig) -> Weights:
         raise EvalError(f"cannot read {source}: {e.strerror or e}") from e
     import torch  # only where a trained method is evaluated (the command line starts without it)
 
+    from .runs import checkpoint_differences
+
     try:
-        trained = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True).get("method")
+        record = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+        trained = record.get("method")
     except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, one line naming it
         raise EvalError(f"checkpoint {source} is corrupt ({type(e).__name__}: {first_line(e)})") from e
     if checksum_matches(source, data) is False:
@@ -388,6 +391,14 @@ def read_weights(config: EvalConfig) -> Weights:
     if trained != config.method:
         raise EvalError(
             f"{source} holds weights trained by {trained!r} (its own record), not {config.method!r}"
+        )
+    # a checkpoint is what it says it is: its own record of options, kitchens, seed and frames must
+    # be the run's config.json's (+IL+TSE's weights in an LSTM A3C run share method and model)
+    run_config = json.loads((Path(config.run) / "config.json").read_text())
+    differ = checkpoint_differences(record, run_config)
+    if differ:
+        raise EvalError(
+            f"{source} is not the run its config.json describes: it differs in {'; '.join(differ[:4])}"
         )
     return Weights(source, data, hashlib.sha256(data).hexdigest())
 

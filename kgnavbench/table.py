@@ -63,6 +63,7 @@ from .plugins import PluginError, load_plugin
 from .runs import (
     POLICY_KEYS,
     TrainError,
+    checkpoint_differences,
     load_checkpoint,
     run_record,
     save_checkpoint,
@@ -292,6 +293,14 @@ def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",))
     if not (run_dir / "metrics.csv").is_file():
         raise TableError(f"{run_dir} has no metrics.csv")
     weights = {name: _shipped_checkpoint(run_dir / f"{name}.pt") for name in checkpoints}
+    full_config = json.loads((run_dir / "config.json").read_text())
+    for name, state in weights.items():  # a checkpoint is what its config.json says it is
+        differ = checkpoint_differences(state, full_config)
+        if differ:
+            raise TableError(
+                f"{run_dir / name}.pt is not the run its config.json describes: it differs in "
+                f"{'; '.join(differ[:4])}"
+            )
     out = zoo / run_dir.name
     if out.exists():
         raise TableError(f"{out} exists; a shipped run is never replaced (delete it first to ship again)")

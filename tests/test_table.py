@@ -721,7 +721,14 @@ def test_ship_refuses_what_it_cannot_ship_whole_and_never_replaces(tmp_path, cap
     assert "config.json is unreadable" in ship()
     (run / "config.json").write_text(json.dumps({"method": "lstm_a3c"}))
     assert "config.json is not a run's config.json: no seed" in ship()
-    (run / "config.json").write_text(json.dumps({"method": "lstm_a3c", "seed": 0, "frames": 10}))
+    identity = {
+        "method": "lstm_a3c",
+        "seed": 0,
+        "frames": 10,
+        "options": {"il": False},
+        "kitchens": ["FloorPlan1"],
+    }
+    (run / "config.json").write_text(json.dumps(identity))
     (run / "finished.json").unlink()
     assert "is not finished" in ship()
     (run / "finished.json").write_text("[]")
@@ -730,8 +737,13 @@ def test_ship_refuses_what_it_cannot_ship_whole_and_never_replaces(tmp_path, cap
     assert "has no metrics.csv" in ship()
     (run / "metrics.csv").write_text("frames\n10\n")
     assert "best.pt does not exist" in ship()
-    state = {key: 0 for key in ("format", "method", "options", "kitchens", "seed", "updates")}
-    state.update(format=runs.CHECKPOINT_FORMAT, model={}, model_config={}, covis={}, frames=10)
+    state = {"format": runs.CHECKPOINT_FORMAT, "updates": 0, "model": {}, "model_config": {}, "covis": {}}
+    state.update({k: v for k, v in identity.items() if k != "frames"}, frames=10)
+    # a checkpoint that is another run's (+IL's weights relabelled LSTM A3C, or absurd frames)
+    runs.save_checkpoint(run / "best.pt", {**state, "options": {"il": True}})
+    assert "is not the run its config.json describes: it differs in option il True" in ship()
+    runs.save_checkpoint(run / "best.pt", {**state, "frames": 10**30})
+    assert "differs in frames 1000000000000000000000000000000" in ship()
     runs.save_checkpoint(run / "best.pt", state)
     (run / "best.pt").write_bytes((run / "best.pt").read_bytes()[:-9] + b"corrupted")
     assert "does not match its checksum" in ship()

@@ -963,3 +963,18 @@ def test_resume_refuses_a_last_pt_that_is_another_runs(capsys, tmp_path, floorpl
     err = capsys.readouterr().err
     assert "is not this run's checkpoint" in err and named in err and err.count("\n") == 1, err
     assert (run_dir / "last.pt").read_bytes() == before
+
+
+def test_eval_refuses_weights_that_are_not_the_run_config_json_describes(capsys, tmp_path, floorplan1_tasks):
+    """A relabelled config.json (an LSTM A3C run's weights under a config that says +IL) is refused
+    by `eval --run`, which compares the checkpoint's own record with it, and names what differs."""
+    assert main(_train(tmp_path)[3:]) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    config = json.loads((run_dir / "config.json").read_text())
+    config["options"]["il"] = True
+    (run_dir / "config.json").write_text(json.dumps(config))
+    argv = ["eval", "--method", "lstm_a3c", "--run", str(run_dir), "--runs", str(tmp_path / "ev")]
+    assert main(argv + ["--kitchens", "FloorPlan1", "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "is not the run its config.json describes" in err and "option il False (config.json: True)" in err
+    assert err.count("\n") == 1
