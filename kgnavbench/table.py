@@ -26,6 +26,7 @@ import io
 import json
 import multiprocessing
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -233,6 +234,8 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Pa
     )
 
 
+# a training run's folder: METHOD-HASH as `runs.run_directory` names it (printable ASCII only)
+RUN_FOLDER = re.compile(r"[A-Za-z0-9_+][A-Za-z0-9_.+-]*-[0-9a-f]{10}")
 # finished.json last: a staging folder left by a killed ship is never a finished run
 SHIPPED_FILES = ("config.json", "metrics.csv", "finished.json")
 
@@ -284,12 +287,30 @@ def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",))
     folder appears whole or not at all (it is staged in a hidden folder beside it, which `trained_run`
     skips), and an existing one is never replaced."""
     run_dir, zoo = Path(run_dir), Path(zoo)
+    if not RUN_FOLDER.fullmatch(run_dir.name):
+        raise TableError(
+            f"{ascii(run_dir.name)} is not a run folder's name (METHOD-HASH: letters, digits and _.+-, "
+            "not first a dot, then a dash and 10 hexadecimal digits); not shipped"
+        )
+    for name in (*SHIPPED_FILES, *(f"{c}.pt" for c in checkpoints), *(f"{c}.pt.sha256" for c in checkpoints)):
+        if (run_dir / name).is_symlink():  # a link could bring any file of the machine into the zoo
+            raise TableError(f"{run_dir / name} is a symbolic link; a run's files are shipped as files only")
     if not (run_dir / "config.json").is_file():
         raise TableError(f"{run_dir} is not a training run (no config.json)")
     if not (run_dir / "finished.json").is_file():
         raise TableError(f"{run_dir} is not finished (no finished.json); ship a run once it has finished")
     config = _json_record(run_dir / "config.json", ("method", "seed"))
     finished = _json_record(run_dir / "finished.json", ("frames",))
+    if config["method"] != run_dir.name.rsplit("-", 1)[0]:
+        raise TableError(
+            f"{run_dir}/config.json names the method {ascii(config['method'])}, not the folder's "
+            f"{run_dir.name.rsplit('-', 1)[0]!r}; not shipped"
+        )
+    frames = finished["frames"]
+    if not isinstance(frames, int) or isinstance(frames, bool) or frames < 0:
+        raise TableError(
+            f"{run_dir}/finished.json's frames {ascii(frames)} is not a whole number; not shipped"
+        )
     if not (run_dir / "metrics.csv").is_file():
         raise TableError(f"{run_dir} has no metrics.csv")
     weights = {name: _shipped_checkpoint(run_dir / f"{name}.pt") for name in checkpoints}
@@ -305,6 +326,8 @@ def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",))
     if out.exists():
         raise TableError(f"{out} exists; a shipped run is never replaced (delete it first to ship again)")
     zoo.mkdir(parents=True, exist_ok=True)
+    for stale in zoo.glob(f".{run_dir.name}-*.tmp"):  # left by a killed ship of this run: never a run
+        shutil.rmtree(stale, ignore_errors=True)
     staging = Path(tempfile.mkdtemp(dir=zoo, prefix=f".{run_dir.name}-", suffix=".tmp"))
     try:
         os.chmod(staging, 0o755)  # mkdtemp's folder is private; a zoo folder is read by everyone

@@ -961,3 +961,51 @@ def test_a_lost_worker_loses_its_job_only_named_and_a_rerun_resumes(tmp_path, he
     assert "1 of 2 jobs lost their worker process ([2/2] Killed (seed 0))" in done.stderr
     assert "== done [1/2] Random walk (seed 0)" in done.stdout
     assert list((tmp_path / "runs" / "eval").glob("random_walk-*/episodes/FloorPlan1.jsonl"))
+
+
+def test_ship_refuses_links_odd_names_and_odd_frames_and_clears_its_leftovers(tmp_path, capsys):
+    """What `ship` reads back is checked: no symbolic link is followed into the zoo, a folder or method
+    name that is not printable ASCII of a run's shape is refused (shown escaped), finished.json's frames
+    must be a whole number, and a staging folder a killed ship left is removed by the next ship."""
+    zoo = tmp_path / "zoo"
+
+    def make_run(name: str, method: str = "lstm_a3c", frames=10) -> Path:
+        run = tmp_path / "runs" / name
+        run.mkdir(parents=True)
+        identity = {"method": method, "seed": 0, "frames": 10, "options": {}, "kitchens": ["FloorPlan1"]}
+        (run / "config.json").write_text(json.dumps(identity))
+        (run / "finished.json").write_text(json.dumps({"frames": frames}))
+        (run / "metrics.csv").write_text("frames\n10\n")
+        state = {"format": runs.CHECKPOINT_FORMAT, "updates": 0, "model": {}, "model_config": {}, "covis": {}}
+        state.update({k: v for k, v in identity.items()})
+        runs.save_checkpoint(run / "best.pt", state)
+        return run
+
+    def refused(run: Path) -> str:
+        assert main(["ship", str(run), "--zoo", str(zoo)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and ("not shipped" in err or "symbolic link" in err), err
+        assert not zoo.exists() or not [p for p in zoo.iterdir() if not p.name.startswith(".")]
+        return err
+
+    linked = make_run("lstm_a3c-00000000aa")
+    (linked / "metrics.csv").unlink()
+    (linked / "metrics.csv").symlink_to("/etc/hostname")
+    assert "metrics.csv is a symbolic link" in refused(linked)
+    cyrillic = make_run("lstm_a3\u0441-00000000bb")  # a Cyrillic "с"
+    assert "'lstm_a3\\u0441-00000000bb' is not a run folder's name" in refused(cyrillic)
+    assert "is not a run folder's name" in refused(make_run(".lstm_a3c-00000000cc"))
+    assert "is not a run folder's name" in refused(make_run("lstm_a3c\u202e-00000000dd"))
+    assert "names the method 'lstm_a3\\u0441'" in refused(
+        make_run("lstm_a3c-00000000ee", method="lstm_a3\u0441")
+    )
+    for i, frames in enumerate(["10", 1e309, 2.5, -1, True]):
+        run = make_run(f"lstm_a3c-0000000{i}f0")
+        (run / "finished.json").write_text(json.dumps({"frames": frames}).replace("1e309", "Infinity"))
+        assert "is not a whole number" in refused(run)
+    # a killed ship's staging folder is cleared by the next ship of that run, which then ships whole
+    good = make_run("lstm_a3c-0123456789")
+    zoo.mkdir(exist_ok=True)
+    (zoo / f".{good.name}-killed.tmp").mkdir()
+    assert main(["ship", str(good), "--zoo", str(zoo)]) == 0
+    assert [p.name for p in zoo.iterdir()] == [good.name]
