@@ -43,6 +43,9 @@ class Config(TrainOptions):
     # "nodes" attention: the scores see the fused view and target I_t too (false: Q alone)
     attention_context: bool = True
     attention_heads: int = 1  # "nodes" attention: k softmaxes over the same objects (1: the paper's)
+    # "nodes" attention: one softmax over the objects in view or in the target ("union", the paper's
+    # H_a), or one over each image's objects ("each")
+    attention_over: str = "union"
     gcn_norm: str = "none"  # "pair": PairNorm after each GCN layer (against over-smoothing)
 
     def check(self) -> None:
@@ -64,6 +67,7 @@ def model_config(config: Config) -> ModelConfig:
         attention_context=config.attention_context,
         attention_heads=config.attention_heads,
         gcn_norm=config.gcn_norm,
+        attention_over=config.attention_over,
         pixels=config.pixels,
     )
 

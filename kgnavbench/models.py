@@ -89,6 +89,10 @@ class ModelConfig:
     # the "nodes" readout's attention heads: k softmaxes over R_z, each from its own score layer w2,
     # H_a (B, k * 125) into the LSTM (1: the paper's one H_a)
     attention_heads: int = 1
+    # the "nodes" readout's softmax: "union" over R_z = R_t OR R_g (the paper's "objects in the current
+    # observation and target image", one H_a), or "each": one over the view's objects R_t and one over
+    # the target image's R_g (as the paper's H_t and H_g are per image), H_a = [a_t, a_g] (B, 2 * 125)
+    attention_over: str = "union"
     # after each GCN layer's propagation, before its ReLU: "none" (the paper's eq. 1) or "pair"
     # (PairNorm, Zhao and Akoglu 2020: the nodes' features centred and scaled to a mean squared row norm
     # of 1, against the over-smoothing that makes every node's row alike)
@@ -103,6 +107,7 @@ class ModelConfig:
             "kg_edges": EDGE_WEIGHTS,
             "kg_readout": ("pooled", "nodes"),
             "gcn_norm": ("none", "pair"),
+            "attention_over": ("union", "each"),
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -125,15 +130,24 @@ class ModelConfig:
                 raise ModelError("ModelConfig.kg_readout='nodes' takes kg_graph='accumulated'")
             if self.kg == "attention" and self.attention_nodes != "visible":
                 raise ModelError("ModelConfig.kg_readout='nodes' takes attention_nodes='visible'")
-        if self.attention_heads > 1 and (self.kg != "attention" or self.kg_readout != "nodes"):
-            raise ModelError("ModelConfig.attention_heads > 1 takes kg='attention', kg_readout='nodes'")
+        if (self.attention_heads > 1 or self.attention_over != "union") and (
+            self.kg != "attention" or self.kg_readout != "nodes"
+        ):
+            raise ModelError(
+                "ModelConfig.attention_heads > 1 and attention_over='each' take kg='attention', "
+                "kg_readout='nodes'"
+            )
+
+    def softmaxes(self) -> int:
+        """How many softmaxes over the objects the "nodes" attention hands the LSTM."""
+        return self.attention_heads * (2 if self.attention_over == "each" else 1)
 
     def kg_width(self) -> int:
         """The width of what the graph (or its control row) adds to the LSTM's input."""
         if self.kg == "none":
             return self.gcn if self.detections else 0
         if self.kg_readout == "nodes":
-            return N_TYPES * (self.attention_heads if self.kg == "attention" else 1)
+            return N_TYPES * (self.softmaxes() if self.kg == "attention" else 1)
         return self.gcn
 
 
@@ -255,6 +269,8 @@ class KnowledgeGraph(nn.Module):
         self.nodes = cfg.kg_readout == "nodes"
         self.edges = cfg.kg_edges
         self.heads = cfg.attention_heads
+        self.each = cfg.attention_over == "each"
+        self.softmaxes = cfg.softmaxes()
         self.norm = pair_norm if cfg.gcn_norm == "pair" else (lambda x: x)
         # H(0) = I, so the first layer's Â H(0) W(0) is Â W(0): W(0) is one row per type
         self.w0 = nn.Parameter(torch.randn(n_types, d) * (2 / n_types) ** 0.5)
@@ -264,7 +280,7 @@ class KnowledgeGraph(nn.Module):
         self.spatial_fusion = nn.Linear(2 * d, d)  # W'_f
         if self.attention:
             self.score_hidden = nn.Linear(d, d)  # W1
-            self.score = nn.Linear(d, cfg.attention_heads)  # w2, one per head
+            self.score = nn.Linear(d, cfg.softmaxes())  # w2, one per softmax
             if self.nodes and cfg.attention_context:  # W_c: the scores see I_t beside each node's Q
                 self.score_context = nn.Linear(cfg.hidden, d, bias=False)
         elif self.nodes:
@@ -333,11 +349,17 @@ class KnowledgeGraph(nn.Module):
         pre = kinds.index_select(0, kind * n + nodes)
         if hasattr(self, "score_context"):
             pre = pre + self.score_context(context).index_select(0, rows)
-        picked = self.score(F.relu(pre))  # (nnz, heads)
-        b, k = r_z.shape[0], self.heads
+        picked = self.score(F.relu(pre))  # (nnz, softmaxes)
+        b, k = r_z.shape[0], self.softmaxes
         scores = torch.zeros(b, n, k, dtype=picked.dtype, device=picked.device)
-        scores = scores.index_put((rows, nodes), picked).transpose(1, 2)  # (B, heads, 125)
-        weights = masked_softmax(scores, r_z[:, None, :])
+        scores = scores.index_put((rows, nodes), picked).transpose(1, 2)  # (B, softmaxes, 125)
+        if self.each:  # the first heads over the view's objects, the others over the target's
+            mask = torch.cat(
+                [r_t[:, None].expand(-1, self.heads, -1), r_g[:, None].expand(-1, self.heads, -1)], 1
+            )
+        else:
+            mask = r_z[:, None, :]
+        weights = masked_softmax(scores, mask)
         return weights[:, 0] if k == 1 else weights.reshape(b, k * n)
 
     def forward(
@@ -355,8 +377,8 @@ class KnowledgeGraph(nn.Module):
             terms = graph if isinstance(graph, GraphTerms) else self.graph_terms(graph)
             out = self.node_readout_of(r_t, r_g, terms, context)
             attention = None
-            if self.attention:  # (B, 125): with several heads, their mean (a distribution too)
-                attention = out if self.heads == 1 else out.view(len(out), self.heads, -1).mean(1)
+            if self.attention:  # (B, 125): with several softmaxes, their mean
+                attention = out if self.softmaxes == 1 else out.view(len(out), self.softmaxes, -1).mean(1)
             return out, attention, terms.node_features
         both, t_only, g_only = r_t * r_g, r_t * (1 - r_g), (1 - r_t) * r_g
         if self.per_step:

@@ -178,6 +178,7 @@ ADDED_OPTIONS = {
     "attention_context": True,
     "attention_heads": 1,
     "gcn_norm": "none",
+    "attention_over": "union",
 }
 # options that change no weight of a run (how often it keeps snapshots): not compared
 UNWEIGHTED_OPTIONS = ("keep_every",)

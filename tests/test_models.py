@@ -208,9 +208,9 @@ def literal_nodes_readout(kg: models.KnowledgeGraph, r_t, r_g, adjacency, contex
         if kg.attention:
             pre = kg.score_hidden(q) + (kg.score_context(context[i]) if hasattr(kg, "score_context") else 0)
             scores = kg.score(F.relu(pre))  # (125, heads)
-            keep = r_z[i] > 0
-            row = torch.zeros(kg.heads, n)
-            for head in range(kg.heads):
+            masks = [r_t[i] > 0] * kg.heads + [r_g[i] > 0] * kg.heads if kg.each else [r_z[i] > 0] * kg.heads
+            row = torch.zeros(len(masks), n)
+            for head, keep in enumerate(masks):
                 if keep.any():
                     row[head, keep] = torch.softmax(scores[keep, head], 0)
             row = row.reshape(-1)
@@ -220,19 +220,30 @@ def literal_nodes_readout(kg: models.KnowledgeGraph, r_t, r_g, adjacency, contex
     return torch.stack(out)
 
 
-@pytest.mark.parametrize("kg", ["mean", "attention", "attention on Q alone", "attention, 3 heads, PairNorm"])
+@pytest.mark.parametrize(
+    "kg",
+    [
+        "mean",
+        "attention",
+        "attention on Q alone",
+        "attention, 3 heads, PairNorm",
+        "attention over each image",
+    ],
+)
 @pytest.mark.parametrize("edges", ["binary", "ppmi"])
 def test_nodes_readout_equals_the_literal_equations(kg, edges):
     torch.manual_seed(0)
-    q_alone, heads = kg == "attention on Q alone", 3 if "heads" in kg else 1
+    q_alone, each = kg == "attention on Q alone", kg == "attention over each image"
     cfg = ModelConfig(
         kg="mean" if kg == "mean" else "attention",
         kg_readout="nodes",
         kg_edges=edges,
         attention_context=not q_alone,
-        attention_heads=heads,
+        attention_heads=3 if "heads" in kg else 1,
         gcn_norm="pair" if "PairNorm" in kg else "none",
+        attention_over="each" if each else "union",
     )
+    heads = cfg.softmaxes()
     kg = cfg.kg
     model = make_model(cfg)
     with torch.no_grad():  # nonzero biases; larger weights, so that the nodes' scores differ
@@ -249,12 +260,12 @@ def test_nodes_readout_equals_the_literal_equations(kg, edges):
     assert torch.allclose(fast, slow, atol=1e-5, rtol=1e-4)
     r_z = (r_t > 0) | (r_g > 0)
     per_head = fast.view(8, heads, N_TYPES)
-    off = ~r_z[:, None, :].expand_as(per_head)
-    assert torch.equal(per_head[off], torch.zeros_like(per_head[off]))  # one slot per object, 0 off R_z
+    masks = torch.stack([r_t > 0, r_g > 0], 1) if each else r_z[:, None, :].expand_as(per_head)
+    assert torch.equal(per_head[~masks], torch.zeros_like(per_head[~masks]))  # one slot per object
     if kg == "attention":
-        assert torch.allclose(attention, per_head.mean(1))  # what recordings show: the heads' mean
+        assert torch.allclose(attention, per_head.mean(1))  # what recordings show: the softmaxes' mean
         sums = per_head.sum(2)
-        assert torch.allclose(sums[1:], torch.ones(7, heads), atol=1e-5) and fast[0].sum() == 0
+        assert torch.allclose(sums, masks.any(2).float(), atol=1e-5) and fast[0].sum() == 0
         fast = attention
         # the scores see the view (or not): another I_t gives other weights over the same objects
         _, other, _ = model.kg(r_t, r_g, adjacency, context=context + torch.randn(8, cfg.hidden))
