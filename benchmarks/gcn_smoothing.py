@@ -19,7 +19,9 @@ have a co-visibility edge, it prints:
   target's image): the distinct vectors per target of what the graph hands the LSTM (distinct at
   1e-3), and with attention the distinct attention vectors per target, their mean entropy (nats,
   states with objects in view or target), and, in the states where objects of the view alone and of
-  the target alone are both present, the mean share of the attention on the target-only objects.
+  the target alone are both present, the mean share of the attention on the target-only objects;
+  with several softmaxes (heads, or one over each image's objects), those of their mean, and each
+  one's distinct vectors and entropy.
 
 `--edges EDGES` also prints the GCN figures for fresh weights on the checkpoint's counts weighted as
 EDGES (binary, ppmi, counts): what another graph would give before training.
@@ -128,6 +130,8 @@ def attention_figures(net, covis, space) -> dict[str, float]:
         features, objects = space.features_t, space.objects_t
         hidden = net.cfg.hidden
         channel, attention, entropy, target_share = [], [], [], []
+        k = net.cfg.softmaxes() if net.cfg.kg == "attention" and net.cfg.kg_readout == "nodes" else 1
+        per_softmax = [([], []) for _ in range(k)] if k > 1 else []  # (distinct, entropies) each
         for r, dest in enumerate(space.destination):
             lo, hi = space.offsets[space.target_kitchen[r]], space.offsets[space.target_kitchen[r] + 1]
             states = torch.arange(int(lo), int(hi))
@@ -152,6 +156,11 @@ def attention_figures(net, covis, space) -> dict[str, float]:
             t_only, v_only = r_g & ~r_t, r_t & ~r_g
             mixed = t_only.any(1) & v_only.any(1)
             target_share += (a * t_only).sum(1)[mixed].tolist()
+            for j, (kinds, ents) in enumerate(per_softmax):
+                w = joint[:, hidden:].reshape(n, k, -1)[:, j].float()
+                some = w.sum(1) > 0.5  # a softmax over an empty set of objects is all zero
+                kinds.append(distinct(w))
+                ents += (-(w * w.clamp_min(1e-30).log()).sum(1))[some].tolist()
     out = {"targets": len(channel), "channel": np.mean(channel), "channel_min": min(channel)}
     if attention:
         out |= {
@@ -160,6 +169,7 @@ def attention_figures(net, covis, space) -> dict[str, float]:
             "entropy": float(np.mean(entropy)),
             "target_share": float(np.mean(target_share)) if target_share else float("nan"),
             "mixed_states": len(target_share),
+            "per_softmax": [(np.mean(kinds), float(np.mean(ents))) for kinds, ents in per_softmax],
         }
     return out
 
@@ -264,7 +274,13 @@ def main() -> None:
                     f"  attention: distinct vectors per target {f['attention']:.0f} (fewest "
                     f"{f['attention_min']}), mean entropy {f['entropy']:.3f} nats, target-only share "
                     f"{f['target_share']:.4f} over {f['mixed_states']:,} mixed states"
+                    + (" (the mean of its softmaxes)" if f["per_softmax"] else "")
                 )
+                for j, (kinds, ent) in enumerate(f["per_softmax"]):
+                    print(
+                        f"    softmax {j}: distinct vectors per target {kinds:.0f}, "
+                        f"mean entropy {ent:.3f} nats"
+                    )
 
 
 if __name__ == "__main__":
