@@ -4,15 +4,16 @@ Importing the package registers its Gymnasium ids (kgnavbench/vecenv.py): `kgnav
 .. `kgnavbench/FloorPlan30-v0`, `kgnavbench/train-v0`, `kgnavbench/val-v0`, `kgnavbench/test-v0`. The
 registration names the entry points as strings, so it imports neither torch nor the env: the
 command line starts fast. `kgnavbench.evaluate_policy` (kgnavbench/evaluate.py) evaluates a policy of
-your own on Table I's fixed episodes; it loads on first use.
+your own on Table I's fixed episodes, and raises `kgnavbench.EvalError` (a ValueError) with one line
+naming what is wrong; both load on first use.
 """
 
 
 def __getattr__(name: str):
-    if name == "evaluate_policy":  # on first use: importing the package stays light
-        from .evaluate import evaluate_policy
+    if name in ("evaluate_policy", "EvalError"):  # on first use: importing the package stays light
+        from . import evaluate
 
-        return evaluate_policy
+        return getattr(evaluate, name)
     raise AttributeError(f"module 'kgnavbench' has no attribute {name!r}")
 
 

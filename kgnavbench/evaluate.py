@@ -905,7 +905,7 @@ class _BatchedPolicy:
 
     def _actions(self, agents: list[str], batch) -> np.ndarray:
         if not callable(self.predict):
-            return np.asarray(self.policy(batch)).reshape(len(agents)).astype(np.int64)
+            return checked_actions(self.policy(batch), len(agents))
         starts = np.array([a in self.fresh for a in agents])
         self.fresh.difference_update(agents)
         rows = [self.state.get(a) for a in agents]
@@ -920,7 +920,26 @@ class _BatchedPolicy:
             self.axes = tuple(_batch_axis(s, len(agents)) for s in arrays)
             for j, agent in enumerate(agents):
                 self.state[agent] = tuple(np.take(s, j, axis=axis) for s, axis in zip(arrays, self.axes))
-        return np.asarray(actions).reshape(len(agents)).astype(np.int64)
+        return checked_actions(actions, len(agents))
+
+
+def checked_actions(actions, n: int) -> np.ndarray:
+    """A policy's actions as (n,) int64, or an EvalError naming what is wrong: they must be integers
+    (an int, or an integer-typed array; floats and bools are never cast: 9.9 would become Stop and a
+    probability 0.99 action 0) in 0..9, one per agent."""
+    a = np.asarray(actions)
+    if a.dtype == bool or not np.issubdtype(a.dtype, np.integer):
+        raise EvalError(
+            f"the policy returned actions of type {a.dtype} ({ascii(a.reshape(-1)[:3].tolist())}...); "
+            f"actions are integers 0..{len(ACTIONS) - 1}, one per agent"
+        )
+    if a.size != n:
+        raise EvalError(f"the policy returned {a.size} actions for {n} agents (shape {a.shape})")
+    a = a.reshape(n).astype(np.int64)
+    bad = a[(a < 0) | (a >= len(ACTIONS))]
+    if len(bad):
+        raise EvalError(f"the policy returned action {int(bad[0])}; actions are 0..{len(ACTIONS) - 1}")
+    return a
 
 
 def _batch_axis(array: np.ndarray, n: int) -> int:
@@ -962,6 +981,20 @@ def evaluate_policy(
     cached."""
     if observation not in ("dict", "box"):
         raise EvalError(f"unknown observation {observation!r}; choose 'dict' or 'box'")
+    for name, value in (("episodes", episodes), ("seed", seed)):
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise EvalError(f"evaluate_policy's {name} must be a whole number, got {ascii(value)}")
+    if kitchens is not None and not isinstance(kitchens, (str, bytes)) and hasattr(kitchens, "__iter__"):
+        kitchens = list(kitchens)
+    if kitchens is not None and (not isinstance(kitchens, list) or not kitchens):
+        raise EvalError(
+            f"evaluate_policy's kitchens must be a non-empty list of kitchen names, got {ascii(kitchens)} "
+            "(None: every kitchen of the split)"
+        )
+    if progress is not None and not callable(progress):
+        raise EvalError(f"evaluate_policy's progress must be callable (print, say), got {ascii(progress)}")
+    if not isinstance(deterministic, bool):
+        raise EvalError(f"evaluate_policy's deterministic must be true or false, got {ascii(deterministic)}")
     if targets not in ("all", "seen"):
         raise EvalError(f"unknown targets {targets!r}; choose 'all' or 'seen'")
     config = EvalConfig(
@@ -976,7 +1009,10 @@ def evaluate_policy(
     results = []
     for kitchen in config.kitchen_list():
         t0 = time.perf_counter()
-        done = evaluate_kitchen(plugin, None, config, kitchen, seen_only=targets == "seen")
+        try:
+            done = evaluate_kitchen(plugin, None, config, kitchen, seen_only=targets == "seen")
+        except PluginError as e:  # the caller's policy, not a plugin file: the package's EvalError
+            raise EvalError(str(e)) from e
         results += done
         if progress:
             progress(f"{kitchen}: {len(done)} episodes in {time.perf_counter() - t0:.1f} s")

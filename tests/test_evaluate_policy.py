@@ -105,3 +105,37 @@ def test_the_examples_run_and_end_in_a_json_summary(example, hermetic_cache):
     assert out.returncode == 0, out.stderr[-2000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert result["episodes"] == 7 and "seen_seen/static" in result["summary"]
+
+
+@pytest.mark.parametrize(
+    "keywords,named",
+    [
+        ({"kitchens": []}, "kitchens must be a non-empty list"),
+        ({"kitchens": "FloorPlan1"}, "kitchens must be a non-empty list"),
+        ({"seed": 1.5}, "seed must be a whole number, got 1.5"),
+        ({"seed": True}, "seed must be a whole number"),
+        ({"episodes": "2"}, "episodes must be a whole number, got '2'"),
+        ({"progress": 3}, "progress must be callable"),
+        ({"deterministic": "yes"}, "deterministic must be true or false"),
+    ],
+)
+def test_evaluate_policy_refuses_arguments_the_cli_would(keywords, named):
+    with pytest.raises(kgnavbench.EvalError, match=named):
+        kgnavbench.evaluate_policy(lambda obs: np.zeros(len(obs["features"]), np.int64), **keywords)
+
+
+@pytest.mark.parametrize(
+    "actions,named",
+    [
+        (lambda n: np.full(n, 9.9), "actions of type float64"),  # never truncated into Stop
+        (lambda n: np.full(n, 0.99, np.float32), "actions of type float32"),
+        (lambda n: np.ones(n, bool), "actions of type bool"),
+        (lambda n: np.full(n, 10), "action 10; actions are 0..9"),
+        (lambda n: np.full(n + 1, 1), "actions for"),
+    ],
+)
+def test_evaluate_policy_refuses_actions_that_are_not_integers_0_to_9(actions, named, floorplan1_tasks):
+    with pytest.raises(kgnavbench.EvalError, match=named):
+        kgnavbench.evaluate_policy(
+            lambda obs: actions(len(obs["features"])), kitchens=["FloorPlan1"], episodes=1
+        )
