@@ -2,12 +2,13 @@
 knowledge graph of the 125 object types and attention over the objects in view.
 
 Table I's rows "+KG" (attention=false: one scalar of the spatial features Q per object visible in the
-view or the target, a 125-wide vector) and "+KG+Attention" (attention=true: H_a, the softmax over
-those objects of scores from Q and the fused view and target). The graph (kg_graph): "accumulated"
-co-visibility of types in the agent's own training frames (saved in checkpoints; kg_edges weighs its
-edges), or "per_step", the clique over the objects in view or in the target (with kg_readout
-"pooled"). kg_edges="binary", kg_readout="pooled" is our first reading. See docs/models.md for the
-equations against the paper's.
+view or the target, a 125-wide vector) and "+KG+Attention" (attention=true: H_a, a softmax over the
+objects in view and one over those of the target image, of scores from Q and the fused view and
+target). The graph (kg_graph): "accumulated" co-visibility of types in the agent's own training
+frames (saved in checkpoints; kg_edges weighs its edges), or "per_step", the clique over the objects
+in view or in the target (with kg_readout "pooled"). kg_edges="binary", kg_readout="pooled",
+gcn_norm="none" is our first reading. See docs/models.md for the equations against the paper's and
+the screen that chose these defaults.
 
     kgnavbench train --method kg_attention --frames 10000000
     kgnavbench eval --method kg_attention --run runs/train/kg_attention-...
@@ -33,20 +34,21 @@ class Config(TrainOptions):
     attention_nodes: str = "visible"
     kg_graph: str = "accumulated"  # or "per_step"
     gcn: int = 128  # GCN width per layer
-    # the accumulated graph's edge weights: "ppmi" (positive PMI of the co-visibility counts, chosen
-    # by the diagnostics of benchmarks/gcn_smoothing.py), "binary" (ever seen together: the first
-    # reading, one-dimensional after three layers) or "counts"
-    kg_edges: str = "ppmi"
+    # the accumulated graph's edge weights: "ppmi_top5" (each node's 5 strongest positive-PMI edges of
+    # the co-visibility counts, chosen by the screen of docs/models.md), "ppmi" (all of them), "binary"
+    # (ever seen together: the first reading, one-dimensional after three layers) or "counts"
+    kg_edges: str = "ppmi_top5"
     # "nodes" (the paper's |V|-wide vectors) or "pooled" (the first reading: a 128-wide mean or
     # attention pool of Q)
     kg_readout: str = "nodes"
     # "nodes" attention: the scores see the fused view and target I_t too (false: Q alone)
     attention_context: bool = True
     attention_heads: int = 1  # "nodes" attention: k softmaxes over the same objects (1: the paper's)
-    # "nodes" attention: one softmax over the objects in view or in the target ("union", the paper's
-    # H_a), or one over each image's objects ("each")
-    attention_over: str = "union"
-    gcn_norm: str = "none"  # "pair": PairNorm after each GCN layer (against over-smoothing)
+    # "nodes" attention: one softmax over the objects of each image ("each": the view's and the target
+    # image's, chosen by the screen: over their union it gave all its mass to the target's objects)
+    # or one over the union ("union")
+    attention_over: str = "each"
+    gcn_norm: str = "pair"  # PairNorm after each GCN layer (against over-smoothing), or "none" (eq. 1)
 
     def check(self) -> None:
         super().check()
@@ -67,7 +69,10 @@ def model_config(config: Config) -> ModelConfig:
         attention_context=config.attention_context,
         attention_heads=config.attention_heads,
         gcn_norm=config.gcn_norm,
-        attention_over=config.attention_over,
+        # one softmax per image is the "nodes" attention's; +KG and the pooled reading have one or none
+        attention_over=config.attention_over
+        if config.attention and config.kg_readout == "nodes"
+        else "union",
         pixels=config.pixels,
     )
 
