@@ -66,6 +66,7 @@ from .runs import (
     TrainError,
     checkpoint_differences,
     load_checkpoint,
+    run_directory,
     run_record,
     save_checkpoint,
     train_method,
@@ -587,6 +588,39 @@ def run_worker(
     return ran
 
 
+# frames per second of one core, the paper preset's learned rows measured on the 2-core development
+# machine (40M frames in 66-87 core-minutes, docs/speed.md): only to say beforehand what training costs
+FRAMES_PER_CORE_SECOND = 8_000
+
+
+def announce_training(preset: Preset, jobs: list, runs_dir: Path, device: str, progress) -> None:
+    """Before anything trains, one line: how many of the jobs' runs are not finished in `runs_dir`
+    (they will train, or resume) and about how many core-hours that is, so that hours of work never
+    start without a word."""
+    try:
+        on = name_of(resolve(device))
+    except DeviceError as e:
+        raise TableError(str(e)) from e
+    to_train = 0
+    for row, seed in jobs:
+        try:
+            plugin = load_plugin(row.method)
+            options = {**preset.options, **row.options}
+            config = plugin.config(options)
+            record = run_record(
+                plugin, config, preset.frames, seed, training_kitchens(preset.train_kitchens), on
+            )
+        except (PluginError, TrainError, ValueError):
+            continue  # the job itself names what is wrong, with its row
+        to_train += not (run_directory(runs_dir, record) / "finished.json").exists()
+    if to_train:
+        hours = to_train * preset.frames / FRAMES_PER_CORE_SECOND / 3600
+        progress(
+            f"== training {to_train} of the preset's {len(jobs)} runs ({preset.frames:,} frames each; "
+            f"finished ones are reused, unfinished ones resume): about {hours:.1f} core-hours on a CPU"
+        )
+
+
 def run_table(
     spec: TableSpec,
     preset_name: str,
@@ -614,6 +648,14 @@ def run_table(
     if sources.train_only:  # only the jobs that train
         jobs = [job for job, trains in zip(jobs, kinds, strict=True) if trains]
         kinds = [True] * len(jobs)
+    if sources.trained is None:
+        announce_training(
+            preset,
+            [job for job, trains in zip(jobs, kinds, strict=True) if trains],
+            runs_dir,
+            device,
+            progress,
+        )
     outcomes: list[JobOutcome | None] = [None] * len(jobs)
     # torch's threads in every job, training (the option) and evaluation alike: the spec's, so that a
     # job's numbers do not depend on how many run at once (threads change the sums' order)

@@ -1009,3 +1009,40 @@ def test_ship_refuses_links_odd_names_and_odd_frames_and_clears_its_leftovers(tm
     (zoo / f".{good.name}-killed.tmp").mkdir()
     assert main(["ship", str(good), "--zoo", str(zoo)]) == 0
     assert [p.name for p in zoo.iterdir()] == [good.name]
+
+
+def test_training_is_announced_with_its_cost_before_it_starts(tmp_path):
+    """Before a table trains, one line says how many runs will train and about how many core-hours;
+    finished runs are not counted, and nothing is said when nothing trains."""
+    from kgnavbench import table as table_module
+    from kgnavbench.plugins import load_plugin
+
+    spec = load_spec()
+    preset = spec.preset("paper")
+    jobs = [(row, seed) for row, seed in table_jobs(spec, preset) if row.name in ("+KG", "+KG+Attention")]
+    lines = []
+    table_module.announce_training(preset, jobs, tmp_path, "cpu", lines.append)
+    hours = 6 * 40_000_000 / table_module.FRAMES_PER_CORE_SECOND / 3600
+    assert lines == [
+        f"== training 6 of the preset's 6 runs (40,000,000 frames each; finished ones are reused, "
+        f"unfinished ones resume): about {hours:.1f} core-hours on a CPU"
+    ]
+    row, seed = jobs[0]
+    plugin = load_plugin(row.method)
+    record = runs.run_record(
+        plugin,
+        plugin.config({**preset.options, **row.options}),
+        preset.frames,
+        seed,
+        runs.training_kitchens(preset.train_kitchens),
+        "cpu",
+    )
+    finished = runs.run_directory(tmp_path, record)
+    finished.mkdir(parents=True)
+    (finished / "finished.json").write_text("{}")
+    lines.clear()
+    table_module.announce_training(preset, jobs, tmp_path, "cpu", lines.append)
+    assert lines[0].startswith("== training 5 of the preset's 6 runs")
+    lines.clear()
+    table_module.announce_training(preset, jobs[:1], tmp_path, "cpu", lines.append)
+    assert lines == []
