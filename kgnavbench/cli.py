@@ -39,7 +39,16 @@ from pathlib import Path
 from . import arguments, plugins
 from .arguments import UsageError
 from .env import EnvError
-from .evaluate import SPLITS, EvalConfig, EvalError, checkpoint_name, evaluate, selected_checkpoint
+from .evaluate import (
+    SEEN_CAP,
+    SPLITS,
+    UNSEEN_CAP,
+    EvalConfig,
+    EvalError,
+    checkpoint_name,
+    evaluate,
+    selected_checkpoint,
+)
 from .graph import TaskError, build_all, cache_dir
 from .kitchens import KITCHEN_NAMES, KitchenError, check_name, kitchen_summary, load_kitchen
 from .plugins import PluginError, load_plugin, parse_options, plugin_sources
@@ -226,6 +235,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         run = evaluate(config, args.runs, progress=progress)
     if args.record is not None or args.video is not None:
         from .record import RecordError, record_episodes  # rerun loads only when recording
+
+        if args.record_steps is not None and args.record_steps > UNSEEN_CAP:
+            progress(
+                f"--record-steps {args.record_steps:,} is above the evaluation's caps ({SEEN_CAP} and "
+                f"{UNSEEN_CAP} actions): each episode is recorded up to its cap"
+            )
 
         try:
             done = record_episodes(

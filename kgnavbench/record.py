@@ -265,7 +265,7 @@ def record_episodes(
     The policy is built as in an evaluation (same config, same PolicySpec and per-kitchen seed); the
     episodes are the task file's first fixed start of the kitchens' first targets (kitchens: default
     the first kitchen of Table I's split). Each episode runs to the evaluation's cap for its column, or
-    to `max_steps` when given. A learned method's weights: `run` (a training run directory, whose
+    to `max_steps` when given and smaller. A learned method's weights: `run` (a training run directory, whose
     best-validation checkpoint an evaluation would test) or `checkpoint` (a file; it wins).
     Returns {"path", "episodes", "steps", "successes", "collisions"}.
     """
@@ -369,7 +369,8 @@ def _record_episode(rec, plugin, policy, env, tasks, row: int, e: int, step: int
     graph = tasks.graph
     target = tasks.targets[row]
     column = evaluate.column_of(tasks.split, target.seen)
-    cap = max_steps if max_steps is not None else evaluate.episode_cap(column)
+    # never past the evaluation's cap: an episode ends there whatever max_steps says
+    cap = min(max_steps or evaluate.UNSEEN_CAP, evaluate.episode_cap(column))
     start = target.starts[0]
     observations, infos = env.reset(
         options={"episodes": [{"target": target.object_id, "start": start, "max_steps": cap}]}

@@ -451,3 +451,13 @@ def test_eval_video_writes_a_video_that_opencv_reads_back(capsys, tmp_path, floo
     assert not list(tmp_path.glob(".*partial*"))
     assert main([*argv, "--video", str(tmp_path / "oracle.avi")]) == 2
     assert "must end in .mp4" in capsys.readouterr().err
+
+
+def test_max_steps_above_the_cap_records_to_the_cap(tmp_path, floorplan1_tasks):
+    """A recording never runs past the evaluation's cap: FloorPlan1's first recorded episode is one of
+    an unseen target (cap 1000), so max_steps=100,000 records 1000 actions, Stop never drawn."""
+    path = tmp_path / "walk.rrd"
+    out = record.record_episodes(
+        "random_walk", {"stop_probability": "0"}, path, kitchens=["FloorPlan1"], episodes=1, max_steps=100_000
+    )
+    assert out["steps"] == 1000
