@@ -405,9 +405,17 @@ def observation_space(
     return spaces.Dict(parts)
 
 
-def _positive_int(value, name: str) -> int:
+# upper bounds that name the limit rather than fill the memory: 140 envs train Table I's rows, and
+# no episode of the protocol is longer than 5000 actions
+MAX_ENVS = 4096
+MAX_EPISODE_STEPS = 1_000_000
+
+
+def _positive_int(value, name: str, most: int | None = None) -> int:
     if not _is_integer(value) or value < 1:
         raise VecEnvError(f"{name} must be a positive integer, not {value!r}")
+    if most is not None and value > most:
+        raise VecEnvError(f"{name} must be at most {most:,}, not {value:,}")
     return int(value)
 
 
@@ -444,14 +452,15 @@ class _Navigation:
             raise VecEnvError(f"unknown observation {observation!r}; choose one of {OBSERVATIONS}")
         if views and observation == "box":
             raise VecEnvError("views=True needs observation='dict' (the flat Box holds no pixels)")
-        if not isinstance(stop_ends, (bool, np.bool_)):
-            raise VecEnvError(f"stop_ends must be True or False, not {stop_ends!r}")
+        for name, value in (("stop_ends", stop_ends), ("views", views)):
+            if not isinstance(value, (bool, np.bool_)):  # "false" is a true string
+                raise VecEnvError(f"{name} must be True or False, not {value!r}")
         space = build_space(names, targets, success_rule, pixels=views)
         navigators = Navigators(space, np.arange(n) % len(names), stop_ends=bool(stop_ends))
         self._use(navigators, max_steps, views, observation)
 
     def _use(self, navigators: Navigators, max_steps, views: bool, observation: str = "dict") -> None:
-        max_steps = _positive_int(max_steps, "max_steps")
+        max_steps = _positive_int(max_steps, "max_steps", MAX_EPISODE_STEPS)
         if views and navigators.space.views is None:
             raise VecEnvError("views=True needs a state space built with its views (pixels=True)")
         self.space, self.navigators = navigators.space, navigators
@@ -544,7 +553,7 @@ class NavigationVectorEnv(_Navigation, VectorEnv):
         observation: str = "dict",
         render_mode: str | None = None,
     ):
-        num_envs = _positive_int(num_envs, "num_envs")
+        num_envs = _positive_int(num_envs, "num_envs", MAX_ENVS)
         if render_mode not in (None, "rgb_array"):
             raise VecEnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
         self.render_mode = render_mode

@@ -397,3 +397,16 @@ def test_every_kitchen_and_split_has_an_id_and_registering_loads_no_torch():
     code = "import sys, kgnavbench, kgnavbench.cli; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize(
+    "keywords,named",
+    [
+        ({"views": "false"}, "views must be True or False, not 'false'"),
+        ({"max_steps": 2**63}, "max_steps must be at most 1,000,000"),
+        ({"num_envs": 10**6}, "num_envs must be at most 4,096"),
+    ],
+)
+def test_the_vector_env_refuses_keywords_it_cannot_honour(keywords, named, floorplan1_tasks):
+    with pytest.raises(vecenv.VecEnvError, match=named):
+        vecenv.NavigationVectorEnv(**{"num_envs": 2, "kitchens": "FloorPlan1", **keywords})
