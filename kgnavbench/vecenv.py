@@ -437,6 +437,19 @@ class _Navigation:
 
     @spec.setter
     def spec(self, value) -> None:
+        """gym.make sets the spec it made the env from: it must agree with the env. A registered id
+        names its kitchens: a kitchens= keyword may not replace them. (gym.make's max_episode_steps
+        adds gymnasium's TimeLimit around the env after this, out of its reach: docs/environments.md.)"""
+        if value is not None:
+            from gymnasium.envs.registration import registry
+
+            registered = registry.get(value.id)
+            kitchens = (registered.kwargs or {}).get("kitchens") if registered is not None else None
+            if kitchens is not None and (value.kwargs or {}).get("kitchens", kitchens) != kitchens:
+                raise VecEnvError(
+                    f"{value.id} is the kitchens {kitchens!r}; kitchens={value.kwargs['kitchens']!r} "
+                    "cannot replace them (make the id of those kitchens instead)"
+                )
         self._spec = value
 
     def _setup(

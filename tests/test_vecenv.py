@@ -410,3 +410,11 @@ def test_every_kitchen_and_split_has_an_id_and_registering_loads_no_torch():
 def test_the_vector_env_refuses_keywords_it_cannot_honour(keywords, named, floorplan1_tasks):
     with pytest.raises(vecenv.VecEnvError, match=named):
         vecenv.NavigationVectorEnv(**{"num_envs": 2, "kitchens": "FloorPlan1", **keywords})
+
+
+def test_a_registered_ids_kitchens_cannot_be_replaced(floorplan1_tasks):
+    with pytest.raises(vecenv.VecEnvError, match="kitchens='FloorPlan2' cannot replace them"):
+        gym.make("kgnavbench/FloorPlan1-v0", kitchens="FloorPlan2")
+    assert gym.make("kgnavbench/FloorPlan1-v0", kitchens="FloorPlan1").unwrapped.space.kitchens == [
+        "FloorPlan1"
+    ]
