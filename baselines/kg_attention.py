@@ -48,6 +48,7 @@ class Config(TrainOptions):
     # image's, chosen by the screen: over their union it gave all its mass to the target's objects)
     # or one over the union ("union")
     attention_over: str = "each"
+    attention_bound: float = 0.0  # "nodes" attention: scores bounded to (-b, b) (0: unbounded)
     gcn_norm: str = "pair"  # PairNorm after each GCN layer (against over-smoothing), or "none" (eq. 1)
 
     def check(self) -> None:
@@ -56,6 +57,7 @@ class Config(TrainOptions):
 
 
 def model_config(config: Config) -> ModelConfig:
+    nodes_attention = config.attention and config.kg_readout == "nodes"
     return ModelConfig(
         arch="lstm",
         kg="attention" if config.attention else "mean",
@@ -69,10 +71,10 @@ def model_config(config: Config) -> ModelConfig:
         attention_context=config.attention_context,
         attention_heads=config.attention_heads,
         gcn_norm=config.gcn_norm,
-        # one softmax per image is the "nodes" attention's; +KG and the pooled reading have one or none
-        attention_over=config.attention_over
-        if config.attention and config.kg_readout == "nodes"
-        else "union",
+        # one softmax per image and bounded scores are the "nodes" attention's; +KG and the pooled
+        # reading have one softmax or none
+        attention_over=config.attention_over if nodes_attention else "union",
+        attention_bound=config.attention_bound if nodes_attention else 0.0,
         pixels=config.pixels,
     )
 

@@ -93,6 +93,9 @@ class ModelConfig:
     # observation and target image", one H_a), or "each": one over the view's objects R_t and one over
     # the target image's R_g (as the paper's H_t and H_g are per image), H_a = [a_t, a_g] (B, 2 * 125)
     attention_over: str = "union"
+    # the "nodes" attention's scores bounded to (-b, b) by b tanh(s / b), so that no softmax saturates
+    # into a one-hot choice (weights differ at most e^(2b)-fold); 0: unbounded, as the paper's
+    attention_bound: float = 0.0
     # after each GCN layer's propagation, before its ReLU: "none" (the paper's eq. 1) or "pair"
     # (PairNorm, Zhao and Akoglu 2020: the nodes' features centred and scaled to a mean squared row norm
     # of 1, against the over-smoothing that makes every node's row alike)
@@ -130,12 +133,14 @@ class ModelConfig:
                 raise ModelError("ModelConfig.kg_readout='nodes' takes kg_graph='accumulated'")
             if self.kg == "attention" and self.attention_nodes != "visible":
                 raise ModelError("ModelConfig.kg_readout='nodes' takes attention_nodes='visible'")
-        if (self.attention_heads > 1 or self.attention_over != "union") and (
+        if not isinstance(self.attention_bound, (int, float)) or not 0 <= self.attention_bound < 1e6:
+            raise ModelError(f"ModelConfig.attention_bound={self.attention_bound!r}: expected a number >= 0")
+        if (self.attention_heads > 1 or self.attention_over != "union" or self.attention_bound) and (
             self.kg != "attention" or self.kg_readout != "nodes"
         ):
             raise ModelError(
-                "ModelConfig.attention_heads > 1 and attention_over='each' take kg='attention', "
-                "kg_readout='nodes'"
+                "ModelConfig.attention_heads > 1, attention_over='each' and attention_bound take "
+                "kg='attention', kg_readout='nodes'"
             )
 
     def softmaxes(self) -> int:
@@ -270,6 +275,7 @@ class KnowledgeGraph(nn.Module):
         self.edges = cfg.kg_edges
         self.heads = cfg.attention_heads
         self.each = cfg.attention_over == "each"
+        self.bound = float(cfg.attention_bound)
         self.softmaxes = cfg.softmaxes()
         self.norm = pair_norm if cfg.gcn_norm == "pair" else (lambda x: x)
         # H(0) = I, so the first layer's Â H(0) W(0) is Â W(0): W(0) is one row per type
@@ -350,6 +356,8 @@ class KnowledgeGraph(nn.Module):
         if hasattr(self, "score_context"):
             pre = pre + self.score_context(context).index_select(0, rows)
         picked = self.score(F.relu(pre))  # (nnz, softmaxes)
+        if self.bound:
+            picked = self.bound * torch.tanh(picked / self.bound)
         b, k = r_z.shape[0], self.softmaxes
         scores = torch.zeros(b, n, k, dtype=picked.dtype, device=picked.device)
         scores = scores.index_put((rows, nodes), picked).transpose(1, 2)  # (B, softmaxes, 125)

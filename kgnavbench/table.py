@@ -180,6 +180,7 @@ ADDED_OPTIONS = {
     "attention_heads": 1,
     "gcn_norm": "none",
     "attention_over": "union",
+    "attention_bound": 0.0,
 }
 # options that change no weight of a run (how often it keeps snapshots): not compared
 UNWEIGHTED_OPTIONS = ("keep_every",)

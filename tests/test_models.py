@@ -208,6 +208,8 @@ def literal_nodes_readout(kg: models.KnowledgeGraph, r_t, r_g, adjacency, contex
         if kg.attention:
             pre = kg.score_hidden(q) + (kg.score_context(context[i]) if hasattr(kg, "score_context") else 0)
             scores = kg.score(F.relu(pre))  # (125, heads)
+            if kg.bound:
+                scores = kg.bound * torch.tanh(scores / kg.bound)
             masks = [r_t[i] > 0] * kg.heads + [r_g[i] > 0] * kg.heads if kg.each else [r_z[i] > 0] * kg.heads
             row = torch.zeros(len(masks), n)
             for head, keep in enumerate(masks):
@@ -228,6 +230,7 @@ def literal_nodes_readout(kg: models.KnowledgeGraph, r_t, r_g, adjacency, contex
         "attention on Q alone",
         "attention, 3 heads, PairNorm",
         "attention over each image",
+        "attention, bounded scores",
     ],
 )
 @pytest.mark.parametrize("edges", ["binary", "ppmi"])
@@ -242,6 +245,7 @@ def test_nodes_readout_equals_the_literal_equations(kg, edges):
         attention_heads=3 if "heads" in kg else 1,
         gcn_norm="pair" if "PairNorm" in kg else "none",
         attention_over="each" if each else "union",
+        attention_bound=1.5 if "bounded" in kg else 0.0,
     )
     heads = cfg.softmaxes()
     kg = cfg.kg
@@ -267,6 +271,10 @@ def test_nodes_readout_equals_the_literal_equations(kg, edges):
         sums = per_head.sum(2)
         assert torch.allclose(sums, masks.any(2).float(), atol=1e-5) and fast[0].sum() == 0
         fast = attention
+        if cfg.attention_bound:  # no weight more than e^(2b) times another of its softmax
+            for row, keep in zip(per_head.reshape(-1, N_TYPES), masks.reshape(-1, N_TYPES)):
+                if keep.any():
+                    assert row[keep].max() <= row[keep].min() * math.exp(2 * cfg.attention_bound) * 1.0001
         # the scores see the view (or not): another I_t gives other weights over the same objects
         _, other, _ = model.kg(r_t, r_g, adjacency, context=context + torch.randn(8, cfg.hidden))
         assert torch.allclose(other[1:], fast[1:], atol=1e-4) == q_alone
