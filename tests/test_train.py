@@ -509,7 +509,7 @@ def test_a_second_trainer_on_a_run_in_use_is_refused_and_a_dead_ones_claim_taken
         ("ff_a3c", ("start_curriculum=1.0", "stop_ends_from=0", "episode_cap=50")),
         ("lstm_a3c", ("il=true", "tse=true", "tse_importance=false")),
         ("kg_attention", ()),
-        ("kg_attention", ("attention=false", "kg_graph=per_step")),
+        ("kg_attention", ("attention=false", "kg_graph=per_step", "kg_readout=pooled")),
         ("lstm_a3c", ("pixels=true",)),  # end to end from the views
     ],
 )
