@@ -48,7 +48,10 @@ class Config(TrainOptions):
     # image's, chosen by the screen: over their union it gave all its mass to the target's objects)
     # or one over the union ("union")
     attention_over: str = "each"
-    attention_bound: float = 0.0  # "nodes" attention: scores bounded to (-b, b) (0: unbounded)
+    # "nodes" attention: scores bounded to (-b, b), 0: unbounded. Table I's +KG+Attention row sets 2
+    # (unbounded, the screen's softmaxes hardened into one-hot choices); the default stays 0 so that
+    # the +KG row's options, which do not use it, are those its runs trained with
+    attention_bound: float = 0.0
     gcn_norm: str = "pair"  # PairNorm after each GCN layer (against over-smoothing), or "none" (eq. 1)
 
     def check(self) -> None:
