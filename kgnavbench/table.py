@@ -552,6 +552,8 @@ def run_job(
         raise TableError(f"preset {preset.name!r} has jobs 1..{len(jobs)}, not {number}")
     row, seed = jobs[number - 1]
     progress(f"== [{number}/{len(jobs)}] {row.name} (seed {seed})")
+    if sources.trained is None and _trains(row):  # a run trained by other code is not this one
+        announce_training(preset, [(row, seed)], Path(runs_dir), device, progress)
     _job(spec, preset, row, seed, Path(runs_dir), progress, preset.threads, device, sources)
 
 
