@@ -272,7 +272,6 @@ class KnowledgeGraph(nn.Module):
         self.per_step, self.attention = cfg.kg_graph == "per_step", cfg.kg == "attention"
         self.all_nodes = cfg.attention_nodes == "all"
         self.nodes = cfg.kg_readout == "nodes"
-        self.edges = cfg.kg_edges
         self.heads = cfg.attention_heads
         self.each = cfg.attention_over == "each"
         self.bound = float(cfg.attention_bound)

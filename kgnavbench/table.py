@@ -317,9 +317,8 @@ def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",))
     if not (run_dir / "metrics.csv").is_file():
         raise TableError(f"{run_dir} has no metrics.csv")
     weights = {name: _shipped_checkpoint(run_dir / f"{name}.pt") for name in checkpoints}
-    full_config = json.loads((run_dir / "config.json").read_text())
     for name, state in weights.items():  # a checkpoint is what its config.json says it is
-        differ = checkpoint_differences(state, full_config)
+        differ = checkpoint_differences(state, config)
         if differ:
             raise TableError(
                 f"{run_dir / name}.pt is not the run its config.json describes: it differs in "
