@@ -16,6 +16,7 @@
                      [--jobs | --job N | --worker] [--trained DIR | --train-only] [--row NAME ...]
                      [--device auto|cpu|cuda]
     kgnavbench ship RUN_DIR [--zoo DIR] [--last]
+    kgnavbench checkpoints [--preset paper] [--runs DIR] [--row NAME] [--figure PNG]
     kgnavbench figures [--preset quick] [--runs DIR] [--out DIR] [--trained DIR] [--row NAME ...]
     kgnavbench view FILE.rrd
     kgnavbench encoder pretrain [--epochs N] [--samples-per-epoch N] [--shift PX] [--seed S] [--out FILE]
@@ -490,6 +491,29 @@ def cmd_ship(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_checkpoints(args: argparse.Namespace) -> int:
+    from .checkpoints import evidence, figure
+    from .figures import FigureError
+    from .table_spec import SPEC_FILE, TableError, load_spec
+
+    try:
+        spec = load_spec(args.spec or SPEC_FILE)
+        spec.preset(args.preset)
+        device = arguments.device_name(args.device)
+        csv_path = args.csv or spec.path.parent / f"checkpoints-{args.preset}.csv"
+        arguments.writable_folder(csv_path.parent, "--csv")
+        lines = evidence(
+            spec, args.preset, args.runs, csv_path, args.episodes, tuple(args.row or ()), device,
+            lambda line: print(line, flush=True),
+        )  # fmt: skip
+        print(f"wrote {csv_path}: {len(lines)} snapshots of {len({x['run'] for x in lines})} runs")
+        if args.figure and lines:
+            print(f"wrote {figure(lines, args.figure, [row.name for row in spec.rows])}")
+    except (TableError, FigureError) as e:
+        raise UsageError(str(e)) from e
+    return 0
+
+
 def _runs_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
 
@@ -742,6 +766,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zoo", type=Path, default=Path("zoo"), help="where shipped runs live (default zoo/)")
     p.add_argument("--last", action="store_true", help="also ship last.pt, the final weights")
     p.set_defaults(func=cmd_ship)
+
+    p = sub.add_parser(
+        "checkpoints",
+        help="evaluate every kept snapshot of the preset's finished runs into one CSV (and a figure)",
+        description="For each finished run of the preset's learned rows in the runs folder: evaluate "
+        "each snapshot it kept (keep_every) on the table's fixed episodes, a few per target, and merge "
+        "one line per snapshot (validation SR, each cell's SR and SPL) into the CSV, so that any "
+        "checkpoint rule can be replayed without training. Run it when a run finishes: its snapshots "
+        "are not shipped.",
+    )
+    p.add_argument("--preset", default="paper", help="the spec's preset whose runs to read (default paper)")
+    p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
+    _runs_option(p)
+    p.add_argument(
+        "--episodes", type=arguments.positive, default=5, help="episodes per target (default 5)"
+    )
+    p.add_argument("--row", action="append", metavar="NAME", help="only this row (repeatable)")
+    p.add_argument("--csv", type=Path, help="default: tables/checkpoints-<preset>.csv")
+    p.add_argument("--figure", type=Path, help="also draw validation against each column over frames")
+    _device_option(p)
+    p.set_defaults(func=cmd_checkpoints)
 
     p = sub.add_parser(
         "view",

@@ -247,7 +247,7 @@ def _legend(img, entries: list[tuple[str, tuple, str]], right: int, top: int) ->
         x -= 24
 
 
-def _write_png(path, img: np.ndarray) -> Path:
+def write_png(path, img: np.ndarray) -> Path:
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -320,7 +320,7 @@ def bar_line_figure(
                 )
     ax.frame()
     _legend(img, [(bar_label, PALETTE[0], "bar"), (line_label, line_colour, "line")], width - 100, 58)
-    return _write_png(path, img)
+    return write_png(path, img)
 
 
 def _overlaps(box, boxes) -> bool:
@@ -383,7 +383,7 @@ def scatter_figure(points, labels: list[str], path, title: str, size=FIGURE_SIZE
         if anchor is not None:  # a label moved away from its point gets a leader line
             cv2.line(img, p, anchor, (170, 170, 170), 1, cv2.LINE_AA)
         _text(img, label, (box[0], box[3] - 2), 0.38, (70, 70, 70))
-    return _write_png(path, img)
+    return write_png(path, img)
 
 
 def curves_figure(
@@ -401,6 +401,20 @@ def curves_figure(
     axes cover the data and the values of x_include and y_include (0: curves over frames from the start,
     a rate from zero). `marks`: per series name, points drawn as hollow squares in its colour (a
     reference value, e.g. a paper's number)."""
+    return write_png(path, curves_image(series, title, xlabel, ylabel, size, x_include, y_include, marks))
+
+
+def curves_image(
+    series: dict[str, tuple[list[float], list[float]]],
+    title: str,
+    xlabel: str,
+    ylabel: str,
+    size=FIGURE_SIZE,
+    x_include: tuple[float, ...] = (),
+    y_include: tuple[float, ...] = (),
+    marks: dict[str, list[tuple[float, float]]] | None = None,
+) -> np.ndarray:
+    """`curves_figure`'s image (BGR), for a figure of several panels."""
     marks = marks or {}
     clean = {}
     for name, (xs, ys) in series.items():
@@ -451,7 +465,7 @@ def curves_figure(
         y = ax.top + 16 + 20 * k
         cv2.line(img, (ax.left + 10, y), (ax.left + 34, y), colour, 2, cv2.LINE_AA)
         _text(img, name, (ax.left + 42, y), 0.45, valign="middle")
-    return _write_png(path, img)
+    return img
 
 
 ATTENTION_SIZE = (1200, 560)
@@ -515,7 +529,7 @@ def attention_figure(
     _legend(img, [(n, c, "bar") for n, c in ATTENDED_IN if n in present], width - 60, 60)
     for k, line in enumerate(_wrap(caption, width - 60, 0.5)[:2]):
         _text(img, line, (30, height - 40 + 20 * k), 0.5, (70, 70, 70))
-    return _write_png(path, img)
+    return write_png(path, img)
 
 
 def attention_step(

@@ -345,6 +345,58 @@ def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",))
     return Shipped(out, str(config["method"]), config["seed"], finished["frames"], best)
 
 
+def find_trained(
+    preset: Preset, row: Row, seed: int, options: dict, folder: Path, device: str, progress=print
+) -> Path:
+    """The finished run in `folder` (a zoo, or a runs folder) that trained this row's job as the
+    preset says (`trained_run`), whatever code revision trained it."""
+    plugin = load_plugin(row.method)
+    try:
+        on = name_of(resolve(device))
+    except DeviceError as e:
+        raise TableError(str(e)) from e
+    record = run_record(
+        plugin, plugin.config(options), preset.frames, seed, training_kitchens(preset.train_kitchens), on
+    )
+    return trained_run(folder, record, row.name, progress)
+
+
+def eval_config(
+    spec: TableSpec,
+    preset: Preset,
+    row: Row,
+    seed: int,
+    options: dict,
+    run_dir: Path | None,
+    device: str = "cpu",
+    checkpoint: str | None = None,
+    episodes: int | None = None,
+) -> EvalConfig:
+    """The evaluation of one row's job: the protocol's rules, the preset's kitchens and episodes, and
+    the preset's checkpoint rule unless `checkpoint` names another (a snapshot, frames-N)."""
+    if checkpoint is None:
+        checkpoint = "last" if checkpoint_rule(spec, preset) == "last" else "best"
+    return EvalConfig(
+        method=row.method,
+        options=tuple(sorted(options.items())),
+        success_rule=spec.protocol.success_rule,
+        stop_ends=spec.protocol.stop_ends,
+        split="table",
+        kitchens=eval_kitchens(preset, row),
+        episodes_per_target=preset.episodes if episodes is None else episodes,
+        seed=seed,
+        run=str(run_dir) if run_dir else "",
+        checkpoint=checkpoint,
+        device=device,
+        unseen_target_kitchens=preset.unseen_target_kitchens,
+    )
+
+
+def row_options(preset: Preset, row: Row) -> dict:
+    """A row's options: a learned row's are the preset's with the row's over them."""
+    return {**preset.options, **row.options} if _trains(row) else dict(row.options)
+
+
 def run_row(
     spec: TableSpec,
     preset: Preset,
@@ -357,26 +409,11 @@ def run_row(
 ) -> tuple:
     """Train (or find, or resume) one row's run for one seed on `device`, then evaluate its best
     checkpoint (the eval run is None under `sources.train_only`)."""
-    trains = _trains(row)
-    options = dict(row.options)
+    options = row_options(preset, row)
     run_dir = None
-    if trains:
-        options = {**preset.options, **row.options}
+    if _trains(row):
         if sources.trained is not None:
-            plugin = load_plugin(row.method)
-            try:
-                on = name_of(resolve(device))
-            except DeviceError as e:
-                raise TableError(str(e)) from e
-            record = run_record(
-                plugin,
-                plugin.config(options),
-                preset.frames,
-                seed,
-                training_kitchens(preset.train_kitchens),
-                on,
-            )
-            run_dir = trained_run(sources.trained, record, row.name, progress)
+            run_dir = find_trained(preset, row, seed, options, sources.trained, device, progress)
         else:
             run_dir = train_method(
                 row.method,
@@ -390,22 +427,8 @@ def run_row(
             )
     if sources.train_only:
         return run_dir, None
-    kitchens = eval_kitchens(preset, row)
-    config = EvalConfig(
-        method=row.method,
-        options=tuple(sorted(options.items())),
-        success_rule=spec.protocol.success_rule,
-        stop_ends=spec.protocol.stop_ends,
-        split="table",
-        kitchens=kitchens,
-        episodes_per_target=preset.episodes,
-        seed=seed,
-        run=str(run_dir) if run_dir else "",
-        checkpoint="last" if checkpoint_rule(spec, preset) == "last" else "best",
-        device=device,
-        unseen_target_kitchens=preset.unseen_target_kitchens,
-    )
-    if not kitchens:  # every evaluation kitchen is an unseen one, where this row has no cells: "–"
+    config = eval_config(spec, preset, row, seed, options, run_dir, device)
+    if not config.kitchens:  # every evaluation kitchen is an unseen one, where this row has no cells: "–"
         return run_dir, EvalRun(config, Path(runs_dir) / "eval")  # (no kitchens would mean all of them)
     return run_dir, evaluate(config, runs_dir, progress=progress)
 

@@ -1,0 +1,278 @@
+"""checkpoints: every kept snapshot of a table's training runs, evaluated, as one CSV and one figure.
+
+A run of the paper presets keeps its weights every 2.5M frames (`keep_every`: RUN/snapshots/
+frames-N.pt) and measures its validation SR at each of them (metrics.csv). This stage evaluates every
+snapshot on the table's fixed episodes, a few per target (5 by default, about 1,900 episodes per
+snapshot of a learned row), and writes one CSV line per snapshot: the row, seed and run, the frames,
+the validation SR the trainer measured there, whether best.pt and last.pt are that snapshot, and the
+SR, SPL and episodes of each of Table I's cells. Any checkpoint rule, the paper's (highest validation
+SR, ties to the later), the one-standard-error reading, the final weights or a fixed frame count, is
+then a replay over the CSV (`replay`), with no training and no evaluation.
+
+The snapshots live in the runs folder, not in git (16 per run would pass 600 MB), and that folder can
+be lost: evaluate a run's snapshots as soon as it finishes. The CSV (tables/checkpoints-<preset>.csv)
+is what is committed; a run's lines replace that run's earlier ones, the others are kept.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from .evaluate import COLUMNS, KINDS, evaluate
+from .figures import FigureError, curves_image, write_png
+from .files import atomic_write
+from .record import RecordError, read_metrics
+from .runs import load_checkpoint
+from .table import eval_config, find_trained, preset_rows, row_options, _trains
+from .table_spec import TableError, TableSpec
+from .train import standard_error
+
+EPISODES_PER_TARGET = 5
+CELLS = tuple(f"{column}_{kind}" for kind in KINDS for column in COLUMNS)
+FIELDS = (
+    "row",
+    "seed",
+    "run",
+    "frames",
+    "val_sr",
+    "val_episodes",
+    "best",  # 1 where the run's best.pt is this snapshot (the trainer's rule), else 0
+    "last",  # 1 where last.pt is: the final weights
+    *(f"{cell}_{m}" for cell in CELLS for m in ("sr", "spl", "episodes")),
+)
+RULES = ("best", "one-se", "last")  # what `replay` reads: Table I's rule, its other reading, final weights
+
+
+def snapshot_frames(run_dir: Path) -> list[int]:
+    """The frames of the snapshots a run kept, in order."""
+    frames = []
+    for path in (run_dir / "snapshots").glob("frames-*.pt"):
+        number = path.stem.removeprefix("frames-")
+        if number.isdigit():
+            frames.append(int(number))
+    return sorted(frames)
+
+
+def validation_at(run_dir: Path) -> dict[int, tuple[float, int]]:
+    """{frames: (validation SR %, episodes)} from a run's metrics.csv."""
+    try:
+        series = read_metrics(run_dir / "metrics.csv")
+    except RecordError as e:
+        raise TableError(str(e)) from e
+    frames, srs = series.get("val_sr", ([], []))
+    counts = dict(zip(*series.get("val_episodes", ([], []))))
+    return {f: (sr, int(counts.get(f, 0))) for f, sr in zip(frames, srs)}
+
+
+def _checkpoint_frames(path: Path) -> int | None:
+    return int(load_checkpoint(path)["frames"]) if path.is_file() else None
+
+
+def run_lines(
+    spec: TableSpec,
+    preset_name: str,
+    row,
+    seed: int,
+    run_dir: Path,
+    runs_dir: Path,
+    episodes: int = EPISODES_PER_TARGET,
+    device: str = "cpu",
+    progress=print,
+) -> list[dict]:
+    """One CSV line per snapshot of one finished run (evaluations are kept in runs_dir/eval and
+    resume, as every evaluation does)."""
+    preset = spec.preset(preset_name)
+    options = row_options(preset, row)
+    validation = validation_at(run_dir)
+    best, last = _checkpoint_frames(run_dir / "best.pt"), _checkpoint_frames(run_dir / "last.pt")
+    lines = []
+    for frames in snapshot_frames(run_dir):
+        config = eval_config(spec, preset, row, seed, options, run_dir, device, f"frames-{frames}", episodes)
+        result = evaluate(config, runs_dir, progress=lambda _line: None)
+        val_sr, val_episodes = validation.get(frames, (math.nan, 0))
+        line = {
+            "row": row.name,
+            "seed": seed,
+            "run": run_dir.name,
+            "frames": frames,
+            "val_sr": val_sr,
+            "val_episodes": val_episodes,
+            "best": int(frames == best),
+            "last": int(frames == last),
+        }
+        for (column, kind), m in result.summary.items():
+            cell = f"{column}_{kind}"
+            line.update({f"{cell}_sr": m.sr, f"{cell}_spl": m.spl, f"{cell}_episodes": m.episodes})
+        shown = ", ".join(
+            f"{c.replace('_static', '')} {line[f'{c}_sr']:.1f}%"
+            for c in CELLS
+            if c.endswith("static") and f"{c}_sr" in line
+        )
+        progress(f"{row.name} seed {seed} {frames:,} frames: validation {val_sr:.1f}%, {shown}")
+        lines.append(line)
+    return lines
+
+
+def evidence(
+    spec: TableSpec,
+    preset_name: str,
+    runs_dir: Path,
+    csv_path: Path,
+    episodes: int = EPISODES_PER_TARGET,
+    rows: tuple[str, ...] = (),
+    device: str = "cpu",
+    progress=print,
+) -> list[dict]:
+    """Evaluate the snapshots of every finished run of the preset's learned rows (or of `rows`) found
+    in `runs_dir`, and merge their lines into `csv_path` run by run. A job with no finished run there,
+    or a run that kept no snapshot, is named and skipped."""
+    # one thread: a snapshot's batches are a kitchen's ~170 episodes, too small to share, and beside a
+    # training two threads spin against it (measured: 27 times slower per kitchen than one thread)
+    torch.set_num_threads(1)
+    preset = spec.preset(preset_name)
+    unknown = sorted(set(rows) - {row.name for row in spec.rows})
+    if unknown:
+        raise TableError(f"no row named {', '.join(map(repr, unknown))} in {spec.path}")
+    lines = read_csv(csv_path)
+    for row in preset_rows(spec, preset):
+        if (rows and row.name not in rows) or not _trains(row):
+            continue
+        for seed in range(preset.seeds):
+            try:
+                run_dir = find_trained(
+                    preset, row, seed, row_options(preset, row), runs_dir, device, lambda _line: None
+                )
+            except TableError as e:
+                progress(f"skipped: {e}")
+                continue
+            if not snapshot_frames(run_dir):
+                progress(f"skipped: {run_dir} kept no snapshot (trained without keep_every)")
+                continue
+            new = run_lines(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device, progress)
+            lines = [line for line in lines if line["run"] != run_dir.name] + new
+            write_csv(csv_path, lines)
+    return lines
+
+
+def _cell(value) -> str:
+    if isinstance(value, float):
+        return "" if math.isnan(value) else f"{value:.4f}"
+    return str(value)
+
+
+def write_csv(path: Path, lines: list[dict]) -> None:
+    """The CSV in the spec's row order is not known here: lines sorted by row name, seed and frames."""
+    out = io.StringIO()
+    writer = csv.DictWriter(out, FIELDS, lineterminator="\n")
+    writer.writeheader()
+    for line in sorted(lines, key=lambda x: (str(x["row"]), int(x["seed"]), int(x["frames"]))):
+        writer.writerow({key: _cell(line.get(key, "")) for key in FIELDS})
+    atomic_write(Path(path), out.getvalue())
+
+
+def read_csv(path: Path) -> list[dict]:
+    """The lines of a checkpoints CSV (none if it does not exist), numbers as numbers; a file that is
+    not one is a TableError naming it and the line."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    try:
+        reader = csv.DictReader(io.StringIO(path.read_text()))
+        rows = list(reader)
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise TableError(f"cannot read {path}: {e}") from e
+    missing = [f for f in ("row", "seed", "run", "frames", "val_sr") if f not in (reader.fieldnames or [])]
+    if missing:
+        raise TableError(f"{path} is not a checkpoints CSV: no {', '.join(missing)} column")
+    lines = []
+    for n, raw in enumerate(rows, start=2):
+        try:
+            line: dict = {"row": raw["row"], "run": raw["run"], "seed": int(raw["seed"])}
+            for key in FIELDS[3:]:
+                text = (raw.get(key) or "").strip()
+                if key in ("frames", "val_episodes", "best", "last") or key.endswith("_episodes"):
+                    line[key] = int(text) if text else 0
+                else:
+                    line[key] = float(text) if text else math.nan
+        except (TypeError, ValueError) as e:
+            raise TableError(f"{path}, line {n}: not a number ({e})") from e
+        lines.append(line)
+    return lines
+
+
+def replay(lines: list[dict], rule: str) -> dict[str, dict]:
+    """{run: the line of the snapshot `rule` selects}: "best", the highest validation SR, ties to the
+    later (Table I's rule, what the trainer kept as best.pt); "one-se", the latest snapshot whose
+    validation SR is within one standard error of the best so far; "last", the final weights."""
+    if rule not in RULES:
+        raise TableError(f"unknown checkpoint rule {rule!r}; choose one of {', '.join(RULES)}")
+    chosen: dict[str, dict] = {}
+    by_run: dict[str, list[dict]] = {}
+    for line in lines:
+        by_run.setdefault(line["run"], []).append(line)
+    for run, run_lines_ in by_run.items():
+        ordered = sorted(run_lines_, key=lambda x: x["frames"])
+        if rule == "last":
+            chosen[run] = ordered[-1]
+            continue
+        best_sr, pick = -math.inf, None
+        for line in ordered:
+            sr = line["val_sr"]
+            if math.isnan(sr):
+                continue
+            best_sr = max(best_sr, sr)
+            if rule == "best" and sr >= best_sr:
+                pick = line
+            if rule == "one-se" and sr >= best_sr - standard_error(best_sr, max(line["val_episodes"], 1)):
+                pick = line
+        if pick is not None:
+            chosen[run] = pick
+    return chosen
+
+
+FIGURE_SERIES = (  # (CSV cell, legend): the static targets' columns, as Table I's first three
+    ("val_sr", "validation (unseen kitchens)"),
+    ("seen_seen_static_sr", "seen kitchens, seen targets"),
+    ("seen_unseen_static_sr", "seen kitchens, unseen targets"),
+    ("unseen_kitchens_static_sr", "unseen kitchens"),
+)
+PANEL_SIZE = (760, 420)
+PANELS_PER_LINE = 3
+
+
+def figure(lines: list[dict], path: Path, row_order: list[str] | None = None) -> Path:
+    """Validation SR against each test column's SR over frames, one panel per row (the mean over the
+    row's seeds at each snapshot; the seeds' count in the panel's title)."""
+    names = [r for r in (row_order or []) if any(x["row"] == r for x in lines)]
+    names += sorted({x["row"] for x in lines} - set(names))
+    if not names:
+        raise FigureError("no checkpoint lines to draw")
+    panels = []
+    for name in names:
+        mine = [x for x in lines if x["row"] == name]
+        frames = sorted({x["frames"] for x in mine})
+        series = {}
+        for key, legend in FIGURE_SERIES:
+            ys = []
+            for f in frames:
+                values = [x[key] for x in mine if x["frames"] == f and not math.isnan(x.get(key, math.nan))]
+                ys.append(sum(values) / len(values) if values else math.nan)
+            if any(math.isfinite(y) for y in ys):
+                series[legend] = ([f / 1e6 for f in frames], ys)
+        seeds = len({x["seed"] for x in mine})
+        title = f"{name} ({seeds} seed{'s' if seeds != 1 else ''})"
+        panels.append(curves_image(series, title, "frames (M)", "SR (%)", PANEL_SIZE, (0,), (0, 100)))
+    blank = np.full_like(panels[0], 255)
+    while len(panels) % PANELS_PER_LINE and len(panels) > PANELS_PER_LINE:
+        panels.append(blank)
+    grid = [
+        cv2.hconcat(panels[i : i + PANELS_PER_LINE]) for i in range(0, len(panels), PANELS_PER_LINE)
+    ]
+    return write_png(path, cv2.vconcat(grid) if len(grid) > 1 else grid[0])

@@ -1,0 +1,100 @@
+"""The checkpoints stage: every kept snapshot of a preset's finished runs evaluated into one CSV, any
+checkpoint rule replayed from it, and its figure."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import cv2
+import pytest
+import torch
+
+from kgnavbench.checkpoints import FIELDS, read_csv, replay, write_csv
+from kgnavbench.cli import main
+from kgnavbench.table_spec import SPEC_FILE, TableError
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, hermetic_cache):
+    """A smoke preset of one learned row that keeps a snapshot every 500 frames, trained (no table)."""
+    tmp = tmp_path_factory.mktemp("checkpoints")
+    text = SPEC_FILE.read_text()
+    head, tail = text.split("[presets.smoke]\n", 1)
+    smoke, rest = tail.split("\n\n", 1)
+    smoke = smoke.replace('set = { threads = "1",', 'set = { threads = "1", keep_every = "500",')
+    assert 'keep_every = "500"' in smoke
+    spec = tmp / "spec.toml"
+    spec.write_text(f'{head}[presets.smoke]\nrows = ["Random walk", "LSTM A3C"]\n{smoke}\n\n{rest}')
+    runs = tmp / "runs"
+    argv = ["table", "--spec", str(spec), "--preset", "smoke", "--runs", str(runs), "--train-only"]
+    assert main(argv + ["--workers", "1"]) == 0
+    (run,) = (runs / "train").iterdir()
+    return spec, runs, run
+
+
+def test_each_snapshot_is_one_line_and_the_rules_replay_the_trainers_picks(trained, tmp_path, capsys):
+    spec, runs, run = trained
+    out = tmp_path / "checkpoints.csv"
+    png = tmp_path / "checkpoints.png"
+    argv = ["checkpoints", "--spec", str(spec), "--preset", "smoke", "--runs", str(runs)]
+    argv += ["--episodes", "1", "--csv", str(out), "--figure", str(png)]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    snapshots = sorted(int(p.stem.split("-")[1]) for p in (run / "snapshots").glob("frames-*.pt"))
+    assert len(snapshots) >= 2, snapshots
+    lines = read_csv(out)
+    assert [x["frames"] for x in lines] == snapshots
+    assert {x["row"] for x in lines} == {"LSTM A3C"}  # the random walk keeps no snapshot: not a line
+    assert f"{len(snapshots)} snapshots of 1 runs" in printed
+    with out.open() as f:
+        assert tuple(csv.DictReader(f).fieldnames) == FIELDS
+    # the validation SR is the trainer's, read from metrics.csv at the snapshot's frames
+    with (run / "metrics.csv").open() as f:
+        measured = {int(r["frames"]): float(r["val_sr"]) for r in csv.DictReader(f) if r["val_sr"]}
+    for line in lines:
+        assert line["val_sr"] == pytest.approx(measured[line["frames"]], abs=1e-4)
+        assert line["seen_seen_static_episodes"] > 0 and 0 <= line["seen_seen_static_sr"] <= 100
+        assert line["unseen_kitchens_static_episodes"] > 0  # FloorPlan13, the smoke's unseen kitchen
+    # best.pt and last.pt are flagged, and replaying the rules from the CSV picks them
+    best = torch.load(run / "best.pt", weights_only=True)["frames"]
+    last = torch.load(run / "last.pt", weights_only=True)["frames"]
+    assert [x["frames"] for x in lines if x["best"]] == [best]
+    assert [x["frames"] for x in lines if x["last"]] == [last]
+    assert replay(lines, "best")[run.name]["frames"] == best
+    assert replay(lines, "last")[run.name]["frames"] == last
+    assert replay(lines, "one-se")[run.name]["frames"] >= best  # the latest within one SE of the best
+    # a second call re-evaluates nothing (the evaluations resume) and writes the same file
+    before = out.read_bytes()
+    evaluations = sorted(p.name for p in (runs / "eval").iterdir())
+    assert main(argv) == 0
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in (runs / "eval").iterdir()) == evaluations
+    image = cv2.imread(str(png))
+    assert image is not None and image.shape[0] > 300 and image.shape[1] > 600
+
+
+def test_other_runs_lines_are_kept_and_a_bad_csv_is_named(tmp_path):
+    line = {key: 0 for key in FIELDS} | {"row": "IL", "run": "imitation-0123456789", "val_sr": 12.5}
+    other = line | {"run": "imitation-abcdefabcd", "seed": 1, "frames": 7, "val_sr": math.nan}
+    path = tmp_path / "c.csv"
+    write_csv(path, [line, other])
+    back = read_csv(path)
+    assert [x["run"] for x in back] == ["imitation-0123456789", "imitation-abcdefabcd"]
+    assert back[0]["val_sr"] == 12.5 and math.isnan(back[1]["val_sr"])
+    assert replay(back, "best") == {"imitation-0123456789": back[0]}  # no validation: no pick
+    with pytest.raises(TableError, match="unknown checkpoint rule"):
+        replay(back, "median")
+    path.write_text(path.read_text().replace("12.5000", "twelve"))
+    with pytest.raises(TableError, match=r"c\.csv, line 2: not a number"):
+        read_csv(path)
+    path.write_text("a,b\n1,2\n")
+    with pytest.raises(TableError, match="not a checkpoints CSV"):
+        read_csv(path)
+
+
+def test_an_unknown_row_is_refused_by_name(trained, capsys):
+    spec, runs, _ = trained
+    argv = ["checkpoints", "--spec", str(spec), "--preset", "smoke", "--runs", str(runs), "--row", "Nope"]
+    assert main(argv) == 2
+    assert "no row named 'Nope'" in capsys.readouterr().err
