@@ -1,4 +1,4 @@
-"""checkpoints: every kept snapshot of a table's training runs, evaluated, as one CSV and one figure.
+"""Stage 24 — checkpoints: every kept snapshot of a table's runs, evaluated, as one CSV and a figure.
 
 A run of the paper presets keeps its weights every 2.5M frames (`keep_every`: RUN/snapshots/
 frames-N.pt) and measures its validation SR at each of them (metrics.csv). This stage evaluates every
@@ -30,7 +30,7 @@ from .figures import FigureError, curves_image, write_png
 from .files import atomic_write
 from .record import RecordError, read_metrics
 from .runs import load_checkpoint
-from .table import eval_config, find_trained, preset_rows, row_options, _trains
+from .jobs import eval_config, find_trained, preset_rows, row_options, trains
 from .table_spec import TableError, TableSpec
 from .train import standard_error
 
@@ -142,7 +142,7 @@ def evidence(
         raise TableError(f"no row named {', '.join(map(repr, unknown))} in {spec.path}")
     lines = read_csv(csv_path)
     for row in preset_rows(spec, preset):
-        if (rows and row.name not in rows) or not _trains(row):
+        if (rows and row.name not in rows) or not trains(row):
             continue
         for seed in range(preset.seeds):
             try:
@@ -272,7 +272,5 @@ def figure(lines: list[dict], path: Path, row_order: list[str] | None = None) ->
     blank = np.full_like(panels[0], 255)
     while len(panels) % PANELS_PER_LINE and len(panels) > PANELS_PER_LINE:
         panels.append(blank)
-    grid = [
-        cv2.hconcat(panels[i : i + PANELS_PER_LINE]) for i in range(0, len(panels), PANELS_PER_LINE)
-    ]
+    grid = [cv2.hconcat(panels[i : i + PANELS_PER_LINE]) for i in range(0, len(panels), PANELS_PER_LINE)]
     return write_png(path, cv2.vconcat(grid) if len(grid) > 1 else grid[0])

@@ -350,7 +350,7 @@ def cmd_figures(args: argparse.Namespace) -> int:
         spec = load_spec(args.spec or SPEC_FILE)
         preset = spec.preset(args.preset)
         if rows_named:
-            from .table import only_rows
+            from .jobs import only_rows
 
             only_rows(spec, preset, rows_named)
     except TableError as e:
@@ -415,7 +415,8 @@ def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
     from .distributed import DistributedError
     from .runs import TrainError
-    from .table import Sources, job_commands, run_job, run_table, run_worker, to_markdown, write_table
+    from .jobs import Sources, job_commands, run_job, run_worker
+    from .table import run_table, to_markdown, write_table
     from .table_spec import SPEC_FILE, TableError, load_spec
 
     def say(line: str) -> None:
@@ -471,7 +472,7 @@ def cmd_table(args: argparse.Namespace) -> int:
 
 
 def cmd_ship(args: argparse.Namespace) -> int:
-    from .table import ship_run
+    from .zoo import ship_run
     from .table_spec import TableError
 
     arguments.writable_folder(args.zoo, "--zoo")

@@ -1,4 +1,4 @@
-"""Stage 20 — figures: the paper's figures from Table I's runs, as PNG drawn with OpenCV.
+"""Stage 23 — figures: the paper's figures from Table I's runs, as PNG drawn with OpenCV.
 
 `bar_line_figure` (bars with a line on a second axis), `scatter_figure` (labelled points, e.g. a
 t-SNE), `curves_figure` (training curves); `tsne` is exact t-SNE in torch. `figures` draws the
@@ -859,13 +859,13 @@ def figures_of_table(
     """The figures of a Table I preset's runs (run_table: finished runs are only reloaded, missing
     ones are trained and evaluated first; with `trained`, a folder such as zoo/, the trained runs come
     from there and none is trained), from each row's first seed; `rows_named`: those rows only."""
-    from . import table, table_spec  # lazily: the table stage imports the trainer
+    from . import jobs, table, table_spec  # lazily: the table stage imports the trainer
 
     spec = table_spec.load_spec(spec_path) if spec_path else table_spec.load_spec()
     if trained is None and device == "cpu" and not rows_named:
         result = table.run_table(spec, preset, runs_dir, progress)
     else:  # a run trained on CUDA is another run (its device is in its config): the table's, as asked
-        sources = table.Sources(None if trained is None else Path(trained))
+        sources = jobs.Sources(None if trained is None else Path(trained))
         result = table.run_table(
             spec, preset, runs_dir, progress, device=device, sources=sources, rows_named=rows_named
         )

@@ -81,3 +81,27 @@ def test_every_path_the_docs_name_exists():
         missing += [f"{where}: `{p}`" for p in named_paths(doc) if not (ROOT / p.rstrip("/")).exists()]
         missing += [f"{where}: link {p.relative_to(ROOT)}" for p in linked_paths(doc) if not p.exists()]
     assert not missing, "paths named in the docs that do not exist:\n" + "\n".join(missing)
+
+
+def test_each_stage_imports_only_the_stages_before_it():
+    """docs/stages.md's data flow is the package's: every stage it names is a file of kgnavbench/, and
+    no stage imports a stage after it (helpers such as files.py or intervals.py are not stages)."""
+    import ast
+
+    block = (ROOT / "docs" / "stages.md").read_text().split("```")[1]
+    flow = [word for word in re.split(r"[\s>-]+", block) if word]
+    place = {stage: n for n, stage in enumerate(flow)}
+    assert len(place) == len(flow) > 20, flow
+    later = []
+    for stage in flow:
+        path = ROOT / "kgnavbench" / f"{stage}.py"
+        assert path.is_file(), f"docs/stages.md names the stage {stage}, but {path.name} does not exist"
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:
+                names = [node.module.split(".")[0]] if node.module else [a.name for a in node.names]
+                later += [
+                    f"{stage} imports {n} (line {node.lineno})"
+                    for n in names
+                    if place.get(n, -1) >= place[stage]
+                ]
+    assert not later, "stages that import a stage after them:\n" + "\n".join(later)

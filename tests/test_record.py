@@ -388,7 +388,7 @@ def test_the_attention_figure_refuses_what_it_cannot_draw(tmp_path):
 def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     from types import SimpleNamespace
 
-    from kgnavbench import table, table_spec
+    from kgnavbench import jobs, table, table_spec
 
     spec = table_spec.load_spec()
     runs = {}
@@ -416,7 +416,7 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     figures.figures_of_table(
         "smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append, trained=tmp_path
     )
-    assert taken == [table.Sources(tmp_path)]
+    assert taken == [jobs.Sources(tmp_path)]
 
     # --row: those rows only, as a partial table takes them
     named = []
@@ -428,7 +428,7 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     figures.figures_of_table(
         "smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append, rows_named=("LSTM A3C",)
     )
-    assert named == [("cpu", table.Sources(), ("LSTM A3C",))]
+    assert named == [("cpu", jobs.Sources(), ("LSTM A3C",))]
 
 
 def test_eval_video_writes_a_video_that_opencv_reads_back(capsys, tmp_path, floorplan1_tasks):

@@ -21,20 +21,9 @@ import pytest
 from kgnavbench import runs
 from kgnavbench.cli import main
 from kgnavbench.evaluate import EpisodeResult
-from kgnavbench.table import (
-    EpisodeValue,
-    RowResult,
-    TableResult,
-    caption,
-    cell_episodes,
-    table_jobs,
-    time_left,
-    to_ablation_csv,
-    to_csv,
-    to_latex,
-    to_markdown,
-    write_table,
-)
+from kgnavbench.jobs import table_jobs, time_left
+from kgnavbench.table import caption, to_ablation_csv, to_csv, to_latex, to_markdown, write_table
+from kgnavbench.table_statistics import EpisodeValue, RowResult, TableResult, cell_episodes
 from kgnavbench.table_spec import (
     CELL_KEYS,
     CELLS,
@@ -899,14 +888,14 @@ def test_names_in_printed_tables_and_commands_are_escaped(tmp_path, capsys):
 def test_a_row_without_unseen_kitchens_gets_no_cells_where_every_kitchen_is_unseen(tmp_path):
     """FF A3C has no row for unseen kitchens: in a preset whose evaluation kitchens are all unseen it
     is evaluated nowhere (no kitchens used to mean the whole split) and its cells stay empty."""
-    from kgnavbench.table import eval_kitchens, run_row
+    from kgnavbench.jobs import Job, eval_kitchens, run_row
 
     spec = load_spec()
     rows = {r.name: r for r in spec.rows}
     preset = dataclasses.replace(spec.presets["smoke"], eval_kitchens=("FloorPlan27",))
     assert eval_kitchens(preset, rows["FF A3C"]) == ()
     row = dataclasses.replace(rows["FF A3C"], method="random_walk", options={})  # nothing to train
-    _, run = run_row(spec, preset, row, 0, tmp_path, progress=lambda line: None)
+    _, run = run_row(Job(spec, preset, row, 0, tmp_path), progress=lambda line: None)
     assert run.results == [] and not (tmp_path / "eval").exists()
 
 
@@ -1014,7 +1003,7 @@ def test_ship_refuses_links_odd_names_and_odd_frames_and_clears_its_leftovers(tm
 def test_training_is_announced_with_its_cost_before_it_starts(tmp_path):
     """Before a table trains, one line says how many runs will train and about how many core-hours;
     finished runs are not counted, and nothing is said when nothing trains."""
-    from kgnavbench import table as table_module
+    from kgnavbench import jobs as table_module
     from kgnavbench.plugins import load_plugin
 
     spec = load_spec()

@@ -1,0 +1,456 @@
+"""Stage 20 — jobs: a table's jobs (one row for one seed each) and the engines that run them.
+
+A `Job` trains (or finds, or resumes) one row's run for one seed and evaluates its checkpoint under the
+preset's rule (`run_row`); `execute` runs it in this process and keeps what the table needs
+(`JobOutcome`). The engines: `run_jobs` in this process or in worker processes on this machine;
+`job_commands` and `run_job` (`table --jobs`, `--job N`) for Slurm arrays, xargs or ssh loops, each
+job one command into a shared runs folder; `run_worker` (`table --worker`) takes unclaimed jobs from a
+shared runs folder. Every job is a resumable run directory, so a job run twice, or killed and run
+again, continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import functools
+import multiprocessing
+import os
+import time
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from shlex import quote
+from typing import NamedTuple
+
+import torch
+
+from . import claims
+from .device import DeviceError, name_of, resolve
+from .evaluate import (
+    EvalConfig,
+    EvalRun,
+    evaluate,
+)
+from .files import end_with_parent, one_line
+from .kitchens import KITCHEN_NAMES
+from .plugins import PluginError, load_plugin
+from .runs import (
+    TrainError,
+    run_directory,
+    run_record,
+    train_method,
+    training_kitchens,
+)
+from .table_spec import (
+    SPEC_FILE,
+    Preset,
+    Row,
+    TableError,
+    TableSpec,
+)
+from .table_statistics import EpisodeValue, cell_episodes
+from .tasks import load_task_file
+from .zoo import trained_run
+
+
+@dataclass(frozen=True)
+class Sources:
+    """Where a job's trained run comes from and what the job does with it: by default it trains (or
+    finds, or resumes) the run in the runs folder and evaluates it. `trained`: take the finished run
+    from that folder instead (a zoo of shipped runs, or another runs folder) and never train.
+    `train_only`: train, and leave evaluating and assembling to a later `table`."""
+
+    trained: Path | None = None
+    train_only: bool = False
+
+
+@dataclass(frozen=True)
+class Job:
+    """One row of a preset for one seed: trained (or found, or resumed) and evaluated into `runs_dir`,
+    on `device`, from `sources`; torch on `threads` threads in its process (0: torch's own number).
+    Picklable, so that any engine (this process, a worker process, a Ray task) runs the same value."""
+
+    spec: TableSpec
+    preset: Preset
+    row: Row
+    seed: int
+    runs_dir: Path
+    device: str = "cpu"
+    sources: Sources = Sources()
+    threads: int = 0
+
+    def title(self, number: int, total: int) -> str:
+        """ "[3/27] IL (seed 2)": the job's place in its table, its row and seed."""
+        return f"[{number}/{total}] {self.row.name} (seed {self.seed})"
+
+
+def checkpoint_rule(spec: TableSpec, preset: Preset) -> str:
+    """The checkpoint rule a preset's evaluations follow: its own, else the protocol's."""
+    return preset.checkpoint or spec.protocol.checkpoint
+
+
+def preset_rows(spec: TableSpec, preset: Preset) -> list[Row]:
+    return [row for row in spec.rows if not preset.rows or row.name in preset.rows]
+
+
+def table_jobs(spec: TableSpec, preset: Preset) -> list[tuple[Row, int]]:
+    """The preset's jobs, (row, seed) each, in the table's order: job N (from 1) is the N-th."""
+    return [(row, seed) for row in preset_rows(spec, preset) for seed in range(preset.seeds)]
+
+
+def only_rows(spec: TableSpec, preset: Preset, names: tuple[str, ...]) -> list[Row]:
+    """The preset's rows named in `names` (all of them for none), in the spec's order; a TableError
+    names a row the preset does not have."""
+    rows = preset_rows(spec, preset)
+    unknown = [name for name in names if name not in {row.name for row in rows}]
+    if unknown:
+        raise TableError(
+            f"preset {preset.name!r} has no row {', '.join(map(repr, unknown))}; its rows: "
+            + "; ".join(row.name for row in rows)
+        )
+    return [row for row in rows if not names or row.name in names]
+
+
+def eval_kitchens(preset: Preset, row: Row) -> tuple[str, ...]:
+    """The preset's evaluation kitchens (all of Table I's by default), without unseen kitchens for a
+    method that has no row there."""
+    splits = load_task_file()["splits"]
+    kitchens = preset.eval_kitchens or tuple(
+        sorted(splits["train"] + splits["test"], key=KITCHEN_NAMES.index)
+    )
+    if not row.unseen_kitchens:
+        kitchens = tuple(k for k in kitchens if k in splits["train"])
+    return kitchens
+
+
+def find_trained(
+    preset: Preset, row: Row, seed: int, options: dict, folder: Path, device: str, progress=print
+) -> Path:
+    """The finished run in `folder` (a zoo, or a runs folder) that trained this row's job as the
+    preset says (`trained_run`), whatever code revision trained it."""
+    plugin = load_plugin(row.method)
+    try:
+        on = name_of(resolve(device))
+    except DeviceError as e:
+        raise TableError(str(e)) from e
+    record = run_record(
+        plugin, plugin.config(options), preset.frames, seed, training_kitchens(preset.train_kitchens), on
+    )
+    return trained_run(folder, record, row.name, progress)
+
+
+def eval_config(
+    spec: TableSpec,
+    preset: Preset,
+    row: Row,
+    seed: int,
+    options: dict,
+    run_dir: Path | None,
+    device: str = "cpu",
+    checkpoint: str | None = None,
+    episodes: int | None = None,
+) -> EvalConfig:
+    """The evaluation of one row's job: the protocol's rules, the preset's kitchens and episodes, and
+    the preset's checkpoint rule unless `checkpoint` names another (a snapshot, frames-N)."""
+    if checkpoint is None:
+        checkpoint = "last" if checkpoint_rule(spec, preset) == "last" else "best"
+    return EvalConfig(
+        method=row.method,
+        options=tuple(sorted(options.items())),
+        success_rule=spec.protocol.success_rule,
+        stop_ends=spec.protocol.stop_ends,
+        split="table",
+        kitchens=eval_kitchens(preset, row),
+        episodes_per_target=preset.episodes if episodes is None else episodes,
+        seed=seed,
+        run=str(run_dir) if run_dir else "",
+        checkpoint=checkpoint,
+        device=device,
+        unseen_target_kitchens=preset.unseen_target_kitchens,
+    )
+
+
+def trains(row: Row) -> bool:
+    try:
+        return callable(getattr(load_plugin(row.method).module, "train", None))
+    except PluginError as e:
+        raise TableError(f"row {row.name!r}: {e}") from e
+
+
+def row_options(preset: Preset, row: Row) -> dict:
+    """A row's options: a learned row's are the preset's with the row's over them."""
+    return {**preset.options, **row.options} if trains(row) else dict(row.options)
+
+
+def run_row(job: Job, progress=print) -> tuple:
+    """Train (or find, or resume) one row's run for one seed, then evaluate its checkpoint under the
+    preset's rule (the eval run is None under `sources.train_only`)."""
+    spec, preset, row, seed, sources = job.spec, job.preset, job.row, job.seed, job.sources
+    options = row_options(preset, row)
+    run_dir = None
+    if trains(row):
+        if sources.trained is not None:
+            run_dir = find_trained(preset, row, seed, options, sources.trained, job.device, progress)
+        else:
+            run_dir = train_method(
+                row.method,
+                options,
+                preset.frames,
+                seed,
+                preset.train_kitchens,
+                job.runs_dir,
+                progress=progress,
+                device=job.device,
+            )
+    if sources.train_only:
+        return run_dir, None
+    config = eval_config(spec, preset, row, seed, options, run_dir, job.device)
+    if not config.kitchens:  # every evaluation kitchen is an unseen one, where this row has no cells: "–"
+        return run_dir, EvalRun(config, Path(job.runs_dir) / "eval")  # (no kitchens would mean all of them)
+    return run_dir, evaluate(config, job.runs_dir, progress=progress)
+
+
+def time_left(done: list[tuple[bool, float]], todo: list[bool]) -> float | None:
+    """Seconds left: per kind of row (trained or not), the mean time of the rows of that kind done so
+    far times the rows of that kind to come; None while a kind to come has none done (a random walk's
+    seconds say nothing about a training run's minutes)."""
+    left = 0.0
+    for kind in (True, False):
+        coming = sum(1 for k in todo if k == kind)
+        times = [t for k, t in done if k == kind]
+        if coming and not times:
+            return None
+        left += coming * (sum(times) / len(times) if times else 0.0)
+    return left
+
+
+class JobOutcome(NamedTuple):
+    """What the table keeps of one job."""
+
+    cells: dict[str, list[EpisodeValue]]  # "column/kind" -> its episodes
+    train_run: str  # "" for a method that does not train
+    eval_run: str
+    seconds: float
+    reused: bool  # found done on disk: its seconds say nothing about a job of its kind
+
+
+def execute(job: Job, progress=print) -> JobOutcome:
+    """One job, in this process: what the table keeps of it. Called in the table's process, in a worker
+    process or in a Ray task (with `job.threads` torch threads: 1 where jobs run side by side, so that
+    they do not wait on each other's cores; set here, in the process that computes)."""
+    threads, sources, row = job.threads, job.sources, job.row
+    if threads:
+        torch.set_num_threads(threads)
+    started = time.time()
+    t0 = time.perf_counter()
+    try:
+        run_dir, run = run_row(job, progress)
+    except PluginError as e:
+        raise TableError(f"row {row.name!r}: {e}") from e
+    # a row found done on disk took seconds, not what a row of its kind takes: no ETA sample (a
+    # shipped run's job is its evaluation)
+    if run_dir is not None and sources.trained is None:
+        reused = (run_dir / "finished.json").stat().st_mtime < started
+    elif run is not None:
+        reused = len(run.resumed) == len(run.config.kitchen_list())
+    else:
+        reused = True
+    return JobOutcome(
+        cell_episodes(run.results) if run is not None else {},
+        str(run_dir) if run_dir else "",
+        str(run.directory) if run is not None else "",
+        time.perf_counter() - t0,
+        reused,
+    )
+
+
+def job_claim(
+    runs_dir: Path | str, preset: Preset, n: int, row: Row, seed: int, sources: Sources = Sources()
+) -> Path:
+    """Where job n's claim lives: named by the preset, the job's number, its row and its seed (and
+    "train" for training only: a job trained is not a job evaluated)."""
+    kind = "train-" if sources.train_only else ""
+    return (
+        Path(runs_dir)
+        / "claims"
+        / f"table-{kind}{preset.name}-{n + 1:03d}-{zlib.crc32(row.name.encode()):08x}-s{seed}.claim"
+    )
+
+
+def job_commands(spec: TableSpec, preset_name: str, runs_dir: Path | str) -> list[str]:
+    """One shell command per job (for a Slurm array, `xargs -P`, ssh loops): each trains and evaluates
+    its row and seed into the shared runs folder; `kgnavbench table` after them only assembles."""
+    preset = spec.preset(preset_name)
+    jobs = table_jobs(spec, preset)
+    spec_option = (
+        "" if Path(spec.path).resolve() == SPEC_FILE.resolve() else f" --spec {quote(str(spec.path))}"
+    )
+    base = f"kgnavbench table --preset {quote(preset.name)}{spec_option} --runs {quote(str(runs_dir))}"
+    # every argument quoted for the shell; the row's name only in a comment, on one line
+    return [
+        f"{base} --job {n + 1}  # {one_line(row.name)} (seed {seed})" for n, (row, seed) in enumerate(jobs)
+    ]
+
+
+def run_job(
+    spec: TableSpec,
+    preset_name: str,
+    number: int,
+    runs_dir: Path | str = "runs",
+    progress=print,
+    device: str = "cpu",
+    sources: Sources = Sources(),
+) -> None:
+    """Job `number` (from 1, as `job_commands` prints it): train (or find, or resume) and evaluate."""
+    preset = spec.preset(preset_name)
+    jobs = table_jobs(spec, preset)
+    if not 1 <= number <= len(jobs):
+        raise TableError(f"preset {preset.name!r} has jobs 1..{len(jobs)}, not {number}")
+    row, seed = jobs[number - 1]
+    progress(f"== [{number}/{len(jobs)}] {row.name} (seed {seed})")
+    if sources.trained is None and trains(row):  # a run trained by other code is not this one
+        announce_training(preset, [(row, seed)], Path(runs_dir), device, progress)
+    execute(Job(spec, preset, row, seed, Path(runs_dir), device, sources, preset.threads), progress)
+
+
+def run_worker(
+    spec: TableSpec,
+    preset_name: str,
+    runs_dir: Path | str = "runs",
+    progress=print,
+    device: str = "cpu",
+    sources: Sources = Sources(),
+) -> list[int]:
+    """Take the next unclaimed job of the preset, run it, mark it done, until none is left; returns
+    the numbers (from 1) of the jobs this worker ran. Several workers, on this machine or on others
+    that share `runs_dir`, split the jobs between them (`claims`: a job is claimed by one worker; a
+    dead worker's claim on this host is taken over)."""
+    preset = spec.preset(preset_name)
+    jobs = table_jobs(spec, preset)
+    ran = []
+    for n, (row, seed) in enumerate(jobs):
+        # training only: a job of a row that does not train is nobody's, and its claim is not taken
+        if sources.train_only and not trains(row):
+            continue
+        path = job_claim(runs_dir, preset, n, row, seed, sources)
+        if not claims.claim(path):
+            continue
+        try:
+            progress(f"== [{n + 1}/{len(jobs)}] {row.name} (seed {seed}): claimed by pid {os.getpid()}")
+            execute(Job(spec, preset, row, seed, Path(runs_dir), device, sources, preset.threads), progress)
+        except BaseException:
+            claims.release(path)
+            raise
+        claims.done(path)
+        ran.append(n + 1)
+    progress(f"== no job of preset {preset.name!r} left to claim; this worker ran {len(ran)}")
+    return ran
+
+
+# frames per second of one core, the paper preset's learned rows measured on the 2-core development
+# machine (40M frames in 66-87 core-minutes, docs/speed.md): only to say beforehand what training costs
+FRAMES_PER_CORE_SECOND = 8_000
+
+
+def announce_training(preset: Preset, jobs: list, runs_dir: Path, device: str, progress) -> None:
+    """Before anything trains, one line: how many of the jobs' runs are not finished in `runs_dir`
+    (they will train, or resume) and about how many core-hours that is, so that hours of work never
+    start without a word."""
+    try:
+        on = name_of(resolve(device))
+    except DeviceError as e:
+        raise TableError(str(e)) from e
+    to_train = 0
+    for row, seed in jobs:
+        try:
+            plugin = load_plugin(row.method)
+            options = {**preset.options, **row.options}
+            config = plugin.config(options)
+            record = run_record(
+                plugin, config, preset.frames, seed, training_kitchens(preset.train_kitchens), on
+            )
+        except (PluginError, TrainError, ValueError):
+            continue  # the job itself names what is wrong, with its row
+        to_train += not (run_directory(runs_dir, record) / "finished.json").exists()
+    if to_train:
+        hours = to_train * preset.frames / FRAMES_PER_CORE_SECOND / 3600
+        progress(
+            f"== training {to_train} of the preset's {len(jobs)} runs ({preset.frames:,} frames each; "
+            f"finished ones are reused, unfinished ones resume): about {hours:.1f} core-hours on a CPU"
+        )
+
+
+def run_jobs(jobs: list[Job], progress=print, workers: int = 1) -> list[JobOutcome]:
+    """Every job, with progress and an ETA, in this process (`workers` = 1) or `workers` at a time in
+    worker processes; the outcomes in the jobs' order. A job's options, threads among them, come from
+    the spec alone, so the runs are the same whatever the number of workers; only the wall time
+    differs. A worker killed by a signal loses its own job only: the others finish, then a TableError
+    names the lost ones."""
+    if workers < 1:
+        raise TableError(f"workers must be at least 1, got {workers}")
+    kinds = [trains(job.row) for job in jobs]
+    outcomes: list[JobOutcome | None] = [None] * len(jobs)
+    done: list[tuple[bool, float]] = []
+
+    def eta() -> str:
+        left = time_left(done, [k for k, o in zip(kinds, outcomes, strict=True) if o is None])
+        return f", about {left / 60 / workers:.0f} min left" if left is not None else ""
+
+    def title(n: int) -> str:
+        return jobs[n].title(n + 1, len(jobs))
+
+    if workers == 1:
+        for n, job in enumerate(jobs):
+            progress(f"== {title(n)}{eta()}")
+            outcomes[n] = execute(job, progress)
+            if not outcomes[n].reused:
+                done.append((kinds[n], outcomes[n].seconds))
+        return outcomes
+    # spawn: a fresh interpreter per worker (torch's thread pools do not survive a fork); one
+    # single-worker pool per job, `workers` at a time, so that a worker killed by a signal or the
+    # OOM killer loses its own job only, named, while the others go on
+    progress(f"== {len(jobs)} jobs, {workers} at a time, torch on one thread each")
+    context = multiprocessing.get_context("spawn")
+    # the longest first, so that the last job does not run alone: the rows further down the spec
+    # add components (IL, TSE, the graph) and train slower
+    queue = list(reversed(range(len(jobs))))
+    running: dict[concurrent.futures.Future, tuple[int, concurrent.futures.Executor]] = {}
+    lost: list[int] = []
+    try:
+        while queue or running:
+            while queue and len(running) < workers:
+                n = queue.pop(0)
+                # a worker's lines, prefixed with its job (two jobs' lines interleave); picklable
+                prefix = functools.partial(print, f"{title(n)}:", flush=True)
+                pool = concurrent.futures.ProcessPoolExecutor(
+                    1, mp_context=context, initializer=end_with_parent, initargs=(os.getpid(),)
+                )
+                job = dataclasses.replace(jobs[n], threads=jobs[n].threads or 1)
+                running[pool.submit(execute, job, prefix)] = (n, pool)
+            finished, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
+            for future in finished:
+                n, pool = running.pop(future)
+                pool.shutdown(wait=False)
+                try:
+                    outcomes[n] = future.result()
+                except concurrent.futures.process.BrokenProcessPool:
+                    lost.append(n)
+                    progress(
+                        f"== lost {title(n)}: its worker process died (a signal or the OOM killer); "
+                        "the other jobs go on"
+                    )
+                    continue
+                if not outcomes[n].reused:
+                    done.append((kinds[n], outcomes[n].seconds))
+                progress(f"== done {title(n)} in {outcomes[n].seconds / 60:.1f} min{eta()}")
+    finally:
+        for _, pool in running.values():
+            pool.shutdown(wait=False, cancel_futures=True)
+    if lost:
+        names = "; ".join(title(n) for n in sorted(lost))
+        raise TableError(
+            f"{len(lost)} of {len(jobs)} jobs lost their worker process ({names}); the others are "
+            "done: run the same command again to resume the lost ones and assemble the table"
+        )
+    return outcomes

@@ -1,0 +1,205 @@
+"""Stage 19 — zoo: finished training runs shipped into a folder of their own (`zoo/`), and found there.
+
+`ship_run` copies a finished run (config.json, metrics.csv, finished.json, best.pt and, with "last",
+last.pt, weights only, each with its sha256) into the zoo, whole or not at all. `trained_run` finds, in
+a zoo or a runs folder, the finished run that a table's job would train (`table --trained DIR`): same
+method, options, frames, seed and kitchens, whatever code revision trained it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from .files import checksum_matches, first_line, one_line
+from .runs import (
+    POLICY_KEYS,
+    TrainError,
+    checkpoint_differences,
+    load_checkpoint,
+    save_checkpoint,
+)
+from .table_spec import (
+    TableError,
+)
+
+# what a run's config.json must share with a row's job to be that job's run in a `trained` folder; the
+# code's hashes are left out: a shipped run stays usable after later changes to the training code
+TRAINED_RUN_KEYS = ("method", "options", "frames", "seed", "kitchens", "world_size", "device")
+# options a plugin gained after runs were shipped, with the value that reproduces how those runs
+# trained: a shipped run's config without the option is read as having that value
+ADDED_OPTIONS = {
+    "kg_edges": "binary",
+    "kg_readout": "pooled",
+    "attention_context": True,
+    "attention_heads": 1,
+    "gcn_norm": "none",
+    "attention_over": "union",
+    "attention_bound": 0.0,
+}
+# options that change no weight of a run (how often it keeps snapshots): not compared
+UNWEIGHTED_OPTIONS = ("keep_every",)
+
+
+def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Path:
+    """The finished run in `folder` (its run folders, or those of its train/) whose config matches
+    `record` (`run_record`) on TRAINED_RUN_KEYS. Trained by other code than this checkout's, it is
+    used with a line that says from which revision."""
+    want = {key: record[key] for key in TRAINED_RUN_KEYS}
+    nearest: tuple[int, str] | None = None  # (keys that differ, which) of the closest run, for the error
+    candidates = sorted(
+        path
+        for path in {*folder.glob("*/config.json"), *folder.glob("train/*/config.json")}
+        if not path.parent.name.startswith(".")  # a staging folder `ship_run` left, never a run
+    )
+    for config_path in candidates:
+        try:
+            config = json.loads(config_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            continue  # not a run's config: nothing to match
+        if not isinstance(config, dict) or config.get("method") != record["method"]:
+            continue
+        differ = [key for key in TRAINED_RUN_KEYS if config.get(key) != want[key]]
+        if isinstance(config.get("options"), dict) and "options" in differ:
+            options = {
+                **{k: v for k, v in ADDED_OPTIONS.items() if k in want["options"]},
+                **config["options"],
+            }
+            differ.remove("options")
+            differ += [
+                f"options.{k}"
+                for k in sorted({*options, *want["options"]} - set(UNWEIGHTED_OPTIONS))
+                if options.get(k) != want["options"].get(k)
+            ]
+        if differ:
+            if nearest is None or len(differ) < nearest[0]:
+                nearest = (len(differ), f"{config_path.parent} differs in {', '.join(differ[:6])}")
+            continue
+        run_dir = config_path.parent
+        if not (run_dir / "finished.json").exists():
+            raise TableError(f"row {row_name!r} (seed {record['seed']}): {run_dir} is not finished")
+        if config.get("training_code_sha256") != record["training_code_sha256"]:
+            revision = one_line(str(config.get("git_revision", "?")))[:12]
+            progress(
+                f"{run_dir}: trained by the code of revision {revision}, not this checkout's training "
+                "code; used as shipped"
+            )
+        return run_dir
+    hint = f"; the closest, {nearest[1]}" if nearest else ""
+    raise TableError(
+        f"row {row_name!r} (seed {record['seed']}): no finished {record['method']} run in {folder} "
+        f"trained as the preset says{hint}"
+    )
+
+
+# a training run's folder: METHOD-HASH as `runs.run_directory` names it (printable ASCII only)
+RUN_FOLDER = re.compile(r"[A-Za-z0-9_+][A-Za-z0-9_.+-]*-[0-9a-f]{10}")
+# finished.json last: a staging folder left by a killed ship is never a finished run
+SHIPPED_FILES = ("config.json", "metrics.csv", "finished.json")
+
+
+@dataclass(frozen=True)
+class Shipped:
+    """A run shipped into a zoo: its folder and what zoo/README.md lists of it."""
+
+    folder: Path
+    method: str
+    seed: int
+    frames: int  # trained
+    best_frames: int  # best.pt's
+
+
+def _json_record(path: Path, keys: tuple[str, ...]) -> dict:
+    """A run's JSON file as an object holding `keys`, or a TableError naming the file."""
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise TableError(f"{path.parent} has no {path.name}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise TableError(f"{path} is unreadable ({type(e).__name__}: {one_line(str(e))})") from e
+    missing = [key for key in keys if not isinstance(record, dict) or key not in record]
+    if missing:
+        raise TableError(f"{path} is not a run's {path.name}: no {', '.join(missing)}")
+    return record
+
+
+def _shipped_checkpoint(path: Path) -> dict:
+    """The weights-only copy of a run's checkpoint (POLICY_KEYS), or a TableError naming the file."""
+    if path.is_file() and checksum_matches(path, path.read_bytes()) is None:
+        raise TableError(f"checkpoint {path} has no checksum ({path.name}.sha256); not shipped")
+    try:
+        ck = load_checkpoint(path)
+    except TrainError as e:
+        raise TableError(f"{first_line(e).split('; delete')[0]}; not shipped") from e
+    missing = [key for key in POLICY_KEYS if key not in ck]
+    if missing:
+        raise TableError(f"checkpoint {path} has no {', '.join(missing)}; not shipped")
+    return {key: ck[key] for key in POLICY_KEYS}
+
+
+def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",)) -> Shipped:
+    """Copy a finished training run into `zoo` (one folder, named as the run) as `--trained` and
+    `eval --run` read it: config.json, metrics.csv, finished.json and each checkpoint (best.pt, Table
+    I's; last.pt with "last") weights-only, as trained (fp32), with its sha256. A checkpoint without its
+    checksum, or one that does not match it, is refused, as is a run whose JSON files do not read; the
+    folder appears whole or not at all (it is staged in a hidden folder beside it, which `trained_run`
+    skips), and an existing one is never replaced."""
+    run_dir, zoo = Path(run_dir), Path(zoo)
+    if not RUN_FOLDER.fullmatch(run_dir.name):
+        raise TableError(
+            f"{ascii(run_dir.name)} is not a run folder's name (METHOD-HASH: letters, digits and _.+-, "
+            "not first a dot, then a dash and 10 hexadecimal digits); not shipped"
+        )
+    for name in (*SHIPPED_FILES, *(f"{c}.pt" for c in checkpoints), *(f"{c}.pt.sha256" for c in checkpoints)):
+        if (run_dir / name).is_symlink():  # a link could bring any file of the machine into the zoo
+            raise TableError(f"{run_dir / name} is a symbolic link; a run's files are shipped as files only")
+    if not (run_dir / "config.json").is_file():
+        raise TableError(f"{run_dir} is not a training run (no config.json)")
+    if not (run_dir / "finished.json").is_file():
+        raise TableError(f"{run_dir} is not finished (no finished.json); ship a run once it has finished")
+    config = _json_record(run_dir / "config.json", ("method", "seed"))
+    finished = _json_record(run_dir / "finished.json", ("frames",))
+    if config["method"] != run_dir.name.rsplit("-", 1)[0]:
+        raise TableError(
+            f"{run_dir}/config.json names the method {ascii(config['method'])}, not the folder's "
+            f"{run_dir.name.rsplit('-', 1)[0]!r}; not shipped"
+        )
+    frames = finished["frames"]
+    if not isinstance(frames, int) or isinstance(frames, bool) or frames < 0:
+        raise TableError(
+            f"{run_dir}/finished.json's frames {ascii(frames)} is not a whole number; not shipped"
+        )
+    if not (run_dir / "metrics.csv").is_file():
+        raise TableError(f"{run_dir} has no metrics.csv")
+    weights = {name: _shipped_checkpoint(run_dir / f"{name}.pt") for name in checkpoints}
+    for name, state in weights.items():  # a checkpoint is what its config.json says it is
+        differ = checkpoint_differences(state, config)
+        if differ:
+            raise TableError(
+                f"{run_dir / name}.pt is not the run its config.json describes: it differs in "
+                f"{'; '.join(differ[:4])}"
+            )
+    out = zoo / run_dir.name
+    if out.exists():
+        raise TableError(f"{out} exists; a shipped run is never replaced (delete it first to ship again)")
+    zoo.mkdir(parents=True, exist_ok=True)
+    for stale in zoo.glob(f".{run_dir.name}-*.tmp"):  # left by a killed ship of this run: never a run
+        shutil.rmtree(stale, ignore_errors=True)
+    staging = Path(tempfile.mkdtemp(dir=zoo, prefix=f".{run_dir.name}-", suffix=".tmp"))
+    try:
+        os.chmod(staging, 0o755)  # mkdtemp's folder is private; a zoo folder is read by everyone
+        for name, state in weights.items():
+            save_checkpoint(staging / f"{name}.pt", state)
+        for name in SHIPPED_FILES:
+            shutil.copyfile(run_dir / name, staging / name)
+        os.rename(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    best = weights["best"]["frames"] if "best" in weights else None
+    return Shipped(out, str(config["method"]), config["seed"], finished["frames"], best)
