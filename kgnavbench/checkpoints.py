@@ -28,9 +28,9 @@ import torch
 from .evaluate import COLUMNS, KINDS, evaluate
 from .figures import FigureError, curves_image, write_png
 from .files import atomic_write
+from .jobs import eval_config, find_trained, preset_rows, row_options, trains
 from .record import RecordError, read_metrics
 from .runs import load_checkpoint
-from .jobs import eval_config, find_trained, preset_rows, row_options, trains
 from .table_spec import TableError, TableSpec
 from .train import standard_error
 

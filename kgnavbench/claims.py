@@ -1,12 +1,14 @@
-"""Claims: one process at a time on one thing (a training run's directory, a job of a table), among
-the processes of one machine or of several machines that share the runs folder.
+"""Claims: one process at a time on one thing (a training run's directory), among the processes of one
+machine or of several machines that share the runs folder.
 
-A claim is a small JSON file (host, pid, start time) created with O_CREAT | O_EXCL, which the file
-system grants to one process only. It is released (deleted) when the work ends, or marked done where
-others must see that the work is finished (a table job). A claim whose process is gone, on this same
-host, is stale (a killed run): the next claimant moves it aside (a rename, which one process alone
-wins) and claims afresh. A claim from another host is never judged stale from here (its pid means
-nothing on this machine): the message names the host, and deleting the claim file frees it.
+A claim is a small JSON file (host, pid, start time) created with O_CREAT | O_EXCL, which the file system
+grants to one process only. It is released (deleted) when the work ends. A claim whose process is gone, on
+this same host, is stale (a killed run): the next claimant moves it aside (a rename, which one process
+alone wins) and claims afresh. A claim from another host is never judged stale from here (its pid means
+nothing on this machine): the message names the host, and deleting the claim file frees it. Except on a
+Ray cluster (`jobs.run_jobs_on_ray`): there a claim also records its Ray node, and a claim whose node Ray
+reports dead is stale wherever it is read, so that a job retried on another node takes over its run
+directory.
 """
 
 from __future__ import annotations
@@ -25,8 +27,19 @@ class ClaimError(RuntimeError):
     """The thing is claimed by another live process (the message says which)."""
 
 
+# on a Ray cluster: this process's node, and the nodes Ray reported dead when its task started
+_cluster: dict = {"node": None, "dead": frozenset()}
+
+
+def on_cluster(node: str | None, dead_nodes=()) -> None:
+    """Claims made from now on record Ray node `node`; a claim recorded by one of `dead_nodes` is
+    stale (its process died with its node, on whatever host). None: not on a cluster."""
+    _cluster.update(node=node, dead=frozenset(dead_nodes))
+
+
 def _me() -> dict:
-    return {"host": socket.gethostname(), "pid": os.getpid(), "since": round(time.time(), 3)}
+    me = {"host": socket.gethostname(), "pid": os.getpid(), "since": round(time.time(), 3)}
+    return me if _cluster["node"] is None else {**me, "node": _cluster["node"]}
 
 
 def read(path: Path) -> dict | None:
@@ -52,7 +65,7 @@ WRITING_GRACE = 10.0  # seconds a claim file may stay unreadable while its creat
 
 
 def stale(record: dict | None, path: Path | None = None) -> bool:
-    """A claim that holds nothing any more: of this host with its process gone (and not done), or
+    """A claim that holds nothing any more: of this host with its process gone, or of a dead Ray node, or
     malformed (no host name, or on this host no whole-number pid), or, given its `path`, unreadable
     for longer than a creator takes to write it (an empty file left by a crash). An unreadable claim
     younger than that is being written: not stale."""
@@ -63,8 +76,8 @@ def stale(record: dict | None, path: Path | None = None) -> bool:
             return time.time() - os.stat(path).st_mtime > WRITING_GRACE
         except OSError:
             return False
-    if record.get("done") is True:
-        return False
+    if record.get("node") is not None and record.get("node") in _cluster["dead"]:
+        return True  # its Ray node is dead, and its process with it
     host, pid = record.get("host"), record.get("pid")
     if not isinstance(host, str):
         return True
@@ -75,7 +88,7 @@ def stale(record: dict | None, path: Path | None = None) -> bool:
 
 def claim(path: Path | str) -> bool:
     """Claim `path` for this process: True if it is now ours; False if a live process (or a finished
-    piece of work, `done`) holds it. A stale claim is taken over."""
+    piece of work) holds it. A stale claim is taken over."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     for _ in range(3):
@@ -95,14 +108,6 @@ def claim(path: Path | str) -> bool:
             f.write(json.dumps(_me()) + "\n")
         return True
     return False
-
-
-def done(path: Path | str) -> None:
-    """Mark our claim done: it then stays, and no one takes it over."""
-    path = Path(path)
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps({**_me(), "done": True}) + "\n")
-    os.replace(tmp, path)
 
 
 def release(path: Path | str) -> None:

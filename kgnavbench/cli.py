@@ -13,7 +13,7 @@
     kgnavbench train --method NAME [--preset quick|paper [--spec FILE]] [--set KEY=VALUE] [--frames N]
                      [--seed S] [--kitchens A,B] [--runs DIR] [--record FILE.rrd] [--device auto|cpu|cuda]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR] [--workers N]
-                     [--jobs | --job N | --worker] [--trained DIR | --train-only] [--row NAME ...]
+                     [--jobs | --job N | --ray ADDRESS] [--trained DIR | --train-only] [--row NAME ...]
                      [--device auto|cpu|cuda]
     kgnavbench ship RUN_DIR [--zoo DIR] [--last]
     kgnavbench checkpoints [--preset paper] [--runs DIR] [--row NAME] [--figure PNG]
@@ -414,8 +414,8 @@ def cmd_encoder(args: argparse.Namespace) -> int:
 def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
     from .distributed import DistributedError
+    from .jobs import Sources, job_commands, run_job
     from .runs import TrainError
-    from .jobs import Sources, job_commands, run_job, run_worker
     from .table import run_table, to_markdown, write_table
     from .table_spec import SPEC_FILE, TableError, load_spec
 
@@ -426,11 +426,10 @@ def cmd_table(args: argparse.Namespace) -> int:
         spec = load_spec(args.spec or SPEC_FILE)
         spec.preset(args.preset)  # an unknown preset is refused before anything runs
         device = arguments.device_name(args.device)
-        assembles = not args.jobs and args.job is None and not args.worker and not args.train_only
+        assembles = not args.jobs and args.job is None and not args.train_only
         if args.row and not assembles:
             raise UsageError(
-                "--row picks the rows of a table to assemble; "
-                "--jobs, --job, --worker and --train-only assemble none"
+                "--row picks the rows of a table to assemble; --jobs, --job and --train-only assemble none"
             )
         if args.jobs:
             print("\n".join(job_commands(spec, args.preset, args.runs)))
@@ -441,18 +440,18 @@ def cmd_table(args: argparse.Namespace) -> int:
             raise UsageError(
                 "--trained takes runs already trained; --train-only trains them: one or the other"
             )
+        if args.ray_node_ip and not args.ray:
+            raise UsageError("--ray-node-ip is this machine's address on a Ray cluster: give --ray too")
         sources = Sources(args.trained, args.train_only)
         arguments.writable_folder(args.runs, "--runs")
         if assembles:
             arguments.writable_folder(args.out or spec.path.parent, "--out")
-        if args.job is not None or args.worker:
-            if args.job is not None:
-                run_job(spec, args.preset, args.job, args.runs, progress=say, device=device, sources=sources)
-            else:
-                run_worker(spec, args.preset, args.runs, progress=say, device=device, sources=sources)
+        if args.job is not None:
+            run_job(spec, args.preset, args.job, args.runs, progress=say, device=device, sources=sources)
         if not assembles:
-            if args.job is None and not args.worker:
-                run_table(spec, args.preset, args.runs, say, args.workers, device, sources)
+            if args.job is None:
+                ray = (args.ray, args.ray_node_ip)
+                run_table(spec, args.preset, args.runs, say, args.workers, device, sources, (), *ray)
             trained = f" --trained {args.trained}" if args.trained is not None else ""
             print(
                 f"then `kgnavbench table --preset {args.preset} --runs {args.runs}{trained}` evaluates "
@@ -460,7 +459,16 @@ def cmd_table(args: argparse.Namespace) -> int:
             )
             return 0
         result = run_table(
-            spec, args.preset, args.runs, say, args.workers, device, sources, tuple(args.row or ())
+            spec,
+            args.preset,
+            args.runs,
+            say,
+            args.workers,
+            device,
+            sources,
+            tuple(args.row or ()),
+            args.ray,
+            args.ray_node_ip,
         )
         paths = write_table(result, args.out or spec.path.parent)
     except (TableError, TrainError, DistributedError) as e:
@@ -472,8 +480,8 @@ def cmd_table(args: argparse.Namespace) -> int:
 
 
 def cmd_ship(args: argparse.Namespace) -> int:
-    from .zoo import ship_run
     from .table_spec import TableError
+    from .zoo import ship_run
 
     arguments.writable_folder(args.zoo, "--zoo")
     try:
@@ -780,9 +788,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="paper", help="the spec's preset whose runs to read (default paper)")
     p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
     _runs_option(p)
-    p.add_argument(
-        "--episodes", type=arguments.positive, default=5, help="episodes per target (default 5)"
-    )
+    p.add_argument("--episodes", type=arguments.positive, default=5, help="episodes per target (default 5)")
     p.add_argument("--row", action="append", metavar="NAME", help="only this row (repeatable)")
     p.add_argument("--csv", type=Path, help="default: tables/checkpoints-<preset>.csv")
     p.add_argument("--figure", type=Path, help="also draw validation against each column over frames")
@@ -824,10 +830,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     many.add_argument("--job", type=int, metavar="N", help="run job N of --jobs' list only (no table)")
     many.add_argument(
-        "--worker",
-        action="store_true",
-        help="take the next unclaimed job from the runs folder until none is left (no table); start "
-        "one per machine or core that shares the runs folder, then run `table` to assemble",
+        "--ray",
+        metavar="ADDRESS",
+        help="run every job as a task on the Ray cluster at ADDRESS (as ray.init takes it: HOST:PORT, "
+        "or auto), then assemble the table; the runs folder must be the same path on every node "
+        "(docs/scaling.md); needs kgnavbench[ray]",
+    )
+    p.add_argument(
+        "--ray-node-ip",
+        metavar="IP",
+        help="this machine's address on the Ray cluster, where Ray would guess another (a cluster on "
+        "loopback addresses)",
     )
     p.add_argument(
         "--trained",
@@ -840,7 +853,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--train-only",
         action="store_true",
-        help="train the preset's runs (all, or --job N's, or a --worker's) and stop: no evaluation, "
+        help="train the preset's runs (all, or --job N's) and stop: no evaluation, "
         "no table; a later `table` evaluates and assembles",
     )
     p.add_argument(

@@ -3,10 +3,10 @@
 A `Job` trains (or finds, or resumes) one row's run for one seed and evaluates its checkpoint under the
 preset's rule (`run_row`); `execute` runs it in this process and keeps what the table needs
 (`JobOutcome`). The engines: `run_jobs` in this process or in worker processes on this machine;
-`job_commands` and `run_job` (`table --jobs`, `--job N`) for Slurm arrays, xargs or ssh loops, each
-job one command into a shared runs folder; `run_worker` (`table --worker`) takes unclaimed jobs from a
-shared runs folder. Every job is a resumable run directory, so a job run twice, or killed and run
-again, continues where it stopped.
+`job_commands` and `run_job` (`table --jobs`, `--job N`) for Slurm arrays, xargs or ssh loops, each job
+one command into a shared runs folder; `run_jobs_on_ray` (`table --ray ADDRESS`) every job as a task on a
+Ray cluster whose nodes share the runs folder, retried where a node dies. Every job is a resumable run
+directory, so a job run twice, or killed and run again, continues where it stopped.
 """
 
 from __future__ import annotations
@@ -14,10 +14,12 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import functools
+import json
 import multiprocessing
 import os
+import shutil
+import socket
 import time
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from shlex import quote
@@ -32,7 +34,7 @@ from .evaluate import (
     EvalRun,
     evaluate,
 )
-from .files import end_with_parent, one_line
+from .files import end_with_parent, first_line, one_line
 from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, load_plugin
 from .runs import (
@@ -265,19 +267,6 @@ def execute(job: Job, progress=print) -> JobOutcome:
     )
 
 
-def job_claim(
-    runs_dir: Path | str, preset: Preset, n: int, row: Row, seed: int, sources: Sources = Sources()
-) -> Path:
-    """Where job n's claim lives: named by the preset, the job's number, its row and its seed (and
-    "train" for training only: a job trained is not a job evaluated)."""
-    kind = "train-" if sources.train_only else ""
-    return (
-        Path(runs_dir)
-        / "claims"
-        / f"table-{kind}{preset.name}-{n + 1:03d}-{zlib.crc32(row.name.encode()):08x}-s{seed}.claim"
-    )
-
-
 def job_commands(spec: TableSpec, preset_name: str, runs_dir: Path | str) -> list[str]:
     """One shell command per job (for a Slurm array, `xargs -P`, ssh loops): each trains and evaluates
     its row and seed into the shared runs folder; `kgnavbench table` after them only assembles."""
@@ -312,40 +301,6 @@ def run_job(
     if sources.trained is None and trains(row):  # a run trained by other code is not this one
         announce_training(preset, [(row, seed)], Path(runs_dir), device, progress)
     execute(Job(spec, preset, row, seed, Path(runs_dir), device, sources, preset.threads), progress)
-
-
-def run_worker(
-    spec: TableSpec,
-    preset_name: str,
-    runs_dir: Path | str = "runs",
-    progress=print,
-    device: str = "cpu",
-    sources: Sources = Sources(),
-) -> list[int]:
-    """Take the next unclaimed job of the preset, run it, mark it done, until none is left; returns
-    the numbers (from 1) of the jobs this worker ran. Several workers, on this machine or on others
-    that share `runs_dir`, split the jobs between them (`claims`: a job is claimed by one worker; a
-    dead worker's claim on this host is taken over)."""
-    preset = spec.preset(preset_name)
-    jobs = table_jobs(spec, preset)
-    ran = []
-    for n, (row, seed) in enumerate(jobs):
-        # training only: a job of a row that does not train is nobody's, and its claim is not taken
-        if sources.train_only and not trains(row):
-            continue
-        path = job_claim(runs_dir, preset, n, row, seed, sources)
-        if not claims.claim(path):
-            continue
-        try:
-            progress(f"== [{n + 1}/{len(jobs)}] {row.name} (seed {seed}): claimed by pid {os.getpid()}")
-            execute(Job(spec, preset, row, seed, Path(runs_dir), device, sources, preset.threads), progress)
-        except BaseException:
-            claims.release(path)
-            raise
-        claims.done(path)
-        ran.append(n + 1)
-    progress(f"== no job of preset {preset.name!r} left to claim; this worker ran {len(ran)}")
-    return ran
 
 
 # frames per second of one core, the paper preset's learned rows measured on the 2-core development
@@ -452,5 +407,140 @@ def run_jobs(jobs: list[Job], progress=print, workers: int = 1) -> list[JobOutco
         raise TableError(
             f"{len(lost)} of {len(jobs)} jobs lost their worker process ({names}); the others are "
             "done: run the same command again to resume the lost ones and assemble the table"
+        )
+    return outcomes
+
+
+# A Ray task whose worker process or node dies runs again, this many times at most; the trainer resumes
+# from the run's last.pt, so a retry continues its run. The job's own errors are not retried.
+RAY_RETRIES = 3
+RAY_STATUS_EVERY = 60.0  # seconds between the driver's status lines while nothing ends
+# what a job's process must see as the driver does, whatever environment the nodes were started in:
+# the state-graph cache and the vector code paths that decide a run's floats
+RAY_ENV = ("KGNAVBENCH_CACHE", "MKL_CBWR", "ATEN_CPU_CAPABILITY")
+
+
+def _ray_task(job: Job, title: str, attempts: str, cwd: str) -> JobOutcome:
+    """One job in a Ray worker process, in the driver's working directory `cwd` (a shared folder: the
+    runs folder, the spec and a researcher's ./baselines are found as the driver finds them). Its claims
+    record its node, and a claim left by a node Ray reports dead is taken over (a retry of this job on
+    another node resumes its run); each attempt adds a line to `attempts`, from which the driver tells
+    a retry."""
+    import ray
+
+    try:
+        os.chdir(cwd)
+    except OSError as e:
+        raise TableError(
+            f"{title}: the driver's working directory {cwd} is not on {socket.gethostname()} "
+            f"({e.strerror}); run the table from a folder that every node shares, at the same path"
+        ) from e
+    node = ray.get_runtime_context().get_node_id()
+    claims.on_cluster(node, [n["NodeID"] for n in ray.nodes() if not n["Alive"]])
+    with open(attempts, "a") as f:
+        record = {"node": node, "host": socket.gethostname(), "pid": os.getpid(), "since": time.time()}
+        f.write(json.dumps(record) + "\n")
+    return execute(job, functools.partial(print, f"{title}:", flush=True))
+
+
+def _attempts(path: Path) -> int:
+    try:
+        return len(path.read_text().splitlines())
+    except OSError:
+        return 0
+
+
+def run_jobs_on_ray(
+    jobs: list[Job], address: str, progress=print, node_ip: str | None = None
+) -> list[JobOutcome]:
+    """Every job as a Ray task on the cluster at `address` (as `ray.init` takes it, "auto" included),
+    each with the CPUs of its torch threads; the outcomes in the jobs' order. Each task runs in the
+    driver's working directory, which, with the runs folder, must be the same path on every node (a
+    shared file system): Ray moves no files. A task whose worker or
+    node dies is retried (RAY_RETRIES); a job's own error is not, and is named when the others have
+    ended. While jobs run, the driver prints which are running, done, retried or failed, with an ETA.
+    `node_ip`: this machine's address on the cluster, where Ray would guess another (a loopback one)."""
+    try:
+        import ray
+        from ray.exceptions import RayError, RayTaskError
+    except ImportError as e:
+        raise TableError("--ray needs Ray, an optional extra: pip install 'kgnavbench[ray]'") from e
+    if not jobs:
+        return []
+    runs_dir = Path(jobs[0].runs_dir)
+    attempts_dir = runs_dir / "ray" / f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    attempts_dir.mkdir(parents=True)
+    env = {name: os.environ[name] for name in RAY_ENV if name in os.environ}
+    try:
+        ray.init(
+            address=address,
+            _node_ip_address=node_ip,
+            runtime_env={"env_vars": env} if env else None,
+            log_to_driver=True,
+            logging_level="WARNING",
+        )
+    except (ConnectionError, RuntimeError, ValueError) as e:
+        shutil.rmtree(attempts_dir, ignore_errors=True)
+        raise TableError(f"--ray {address}: cannot reach a Ray cluster there ({first_line(e)})") from e
+    kinds = [trains(job.row) for job in jobs]
+    outcomes: list[JobOutcome | None] = [None] * len(jobs)
+    failed: dict[int, str] = {}
+    done: list[tuple[bool, float]] = []
+
+    def title(n: int) -> str:
+        return jobs[n].title(n + 1, len(jobs))
+
+    def status(parallel: int) -> str:
+        started = [n for n in range(len(jobs)) if _attempts(attempts_dir / f"job-{n + 1:03d}")]
+        retried = [n for n in started if _attempts(attempts_dir / f"job-{n + 1:03d}") > 1]
+        ended = {n for n, o in enumerate(outcomes) if o is not None} | set(failed)
+        running = [n for n in started if n not in ended]
+        left = time_left(done, [k for n, k in enumerate(kinds) if n not in ended])
+        eta = f", about {left / 60 / parallel:.0f} min left" if left is not None else ""
+        return (
+            f"== ray: {len(running)} running, {len(ended) - len(failed)} done, {len(retried)} retried, "
+            f"{len(failed)} failed, {len(jobs) - len(ended) - len(running)} waiting{eta}"
+        )
+
+    try:
+        task = ray.remote(_ray_task)
+        cpus = int(ray.cluster_resources().get("CPU", 1))
+        refs = {}
+        for n, job in enumerate(jobs):
+            job = dataclasses.replace(job, threads=job.threads or 1)
+            options = dict(num_cpus=job.threads, max_retries=RAY_RETRIES, retry_exceptions=False)
+            attempts = str((attempts_dir / f"job-{n + 1:03d}").resolve())
+            remote = task.options(name=title(n), **options)
+            refs[remote.remote(job, title(n), attempts, os.getcwd())] = n
+        parallel = max(1, cpus // max(job.threads or 1 for job in jobs))
+        progress(f"== {len(jobs)} jobs on the Ray cluster at {address} ({cpus} CPUs)")
+        pending = list(refs)
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1, timeout=RAY_STATUS_EVERY)
+            for ref in ready:
+                n = refs[ref]
+                try:
+                    outcomes[n] = ray.get(ref)
+                except RayTaskError as e:  # the job's own error (its traceback went to the log above)
+                    cause = e.cause if e.cause is not None else e
+                    failed[n] = f"{type(cause).__name__}: {first_line(cause)}"
+                    progress(f"== failed {title(n)}: {failed[n]}")
+                    continue
+                except RayError as e:  # its worker or node died, more times than it is retried
+                    failed[n] = f"lost after {RAY_RETRIES} retries ({type(e).__name__}: {first_line(e)})"
+                    progress(f"== failed {title(n)}: {failed[n]}")
+                    continue
+                if not outcomes[n].reused:
+                    done.append((kinds[n], outcomes[n].seconds))
+                progress(f"== done {title(n)} in {outcomes[n].seconds / 60:.1f} min")
+            progress(status(parallel))
+    finally:
+        ray.shutdown()
+        shutil.rmtree(attempts_dir, ignore_errors=True)
+    if failed:
+        names = "; ".join(f"{title(n)}: {why}" for n, why in sorted(failed.items()))
+        raise TableError(
+            f"{len(failed)} of {len(jobs)} jobs failed ({names}); the others are done: fix the cause and "
+            "run the same command again to resume"
         )
     return outcomes

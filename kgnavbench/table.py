@@ -40,6 +40,7 @@ from .jobs import (
     only_rows,
     preset_rows,
     run_jobs,
+    run_jobs_on_ray,
     table_jobs,
     trains,
 )
@@ -63,11 +64,15 @@ def run_table(
     device: str = "cpu",
     sources: Sources | None = None,
     rows_named: tuple[str, ...] = (),
+    ray_address: str | None = None,
+    ray_node_ip: str | None = None,
 ) -> TableResult:
     """Every row and seed (a job each, `jobs.run_jobs`), then the table's rows assembled; resumable
     (see the module docstring). `rows_named`: only these rows of the preset (a partial table, its
     caption and file names say so). `workers` > 1 runs that many jobs at once in worker processes
-    (torch on the preset's `threads`, else one thread, each); the table is the same for any number."""
+    (torch on the preset's `threads`, else one thread, each); `ray_address`: every job as a task on
+    that Ray cluster instead (`ray_node_ip`: this machine's address there). The table is the same
+    whichever runs the jobs."""
     preset = spec.preset(preset_name)
     sources = sources or Sources()  # (by default: train, or find, or resume, in runs_dir)
     if workers < 1:
@@ -83,7 +88,10 @@ def run_table(
     # torch's threads in every job, training (the option) and evaluation alike: the spec's, so that a
     # job's numbers do not depend on how many run at once (threads change the sums' order)
     jobs = [Job(spec, preset, row, seed, runs_dir, device, sources, preset.threads) for row, seed in pairs]
-    outcomes = run_jobs(jobs, progress, workers)
+    if ray_address is None:
+        outcomes = run_jobs(jobs, progress, workers)
+    else:
+        outcomes = run_jobs_on_ray(jobs, ray_address, progress, ray_node_ip)
     per_row: dict[str, RowResult] = {}
     for job, outcome in zip(jobs, outcomes, strict=True):
         result = per_row.setdefault(job.row.name, RowResult(job.row, [], [], [], 0.0))

@@ -48,12 +48,10 @@ def test_a_dead_processs_claim_is_taken_over_and_a_live_ones_is_not(tmp_path):
         live.wait()
 
 
-def test_done_claims_other_hosts_and_half_written_claims_are_never_stale(tmp_path):
+def test_claims_of_other_hosts_and_half_written_claims_are_never_stale(tmp_path):
     dead = subprocess.Popen(["true"])
     dead.wait()
-    path = tmp_path / "job.claim"
-    path.write_text(_record(dead.pid, done=True))
-    assert not claims.claim(path)  # finished work stays finished
+    path = tmp_path / "trainer.claim"
     path.write_text(_record(dead.pid, host="another-machine"))
     assert not claims.claim(path)  # its pid means nothing here
     with pytest.raises(claims.ClaimError, match="another-machine.*delete"), claims.held(path, "run X"):
@@ -62,14 +60,23 @@ def test_done_claims_other_hosts_and_half_written_claims_are_never_stale(tmp_pat
     assert not claims.claim(path)
 
 
-def test_done_marks_the_claim_and_held_releases_it(tmp_path):
-    path = tmp_path / "job.claim"
+def test_held_releases_and_a_claim_of_a_dead_ray_node_is_taken_over_from_any_host(tmp_path):
+    path = tmp_path / "trainer.claim"
     with claims.held(path, "run X"):
-        assert claims.read(path)["pid"] == os.getpid()
+        assert claims.read(path)["pid"] == os.getpid() and "node" not in claims.read(path)
     assert not path.exists()
-    assert claims.claim(path)
-    claims.done(path)
-    assert claims.read(path)["done"] is True and not claims.claim(path)
+    # a claim made on another host by a task of a Ray node: live until Ray reports that node dead
+    other = {"host": "elsewhere", "pid": 1, "since": 0.0, "node": "ab12"}
+    path.write_text(json.dumps(other))
+    try:
+        claims.on_cluster("cd34", dead_nodes=())
+        assert not claims.claim(path)
+        claims.on_cluster("cd34", dead_nodes=("ab12",))
+        assert claims.claim(path) and claims.read(path)["node"] == "cd34"
+    finally:
+        claims.on_cluster(None)
+    claims.release(path)
+    assert not path.exists()
 
 
 def test_malformed_and_abandoned_claims_are_taken_over_or_named_without_a_traceback(tmp_path):

@@ -7,7 +7,6 @@ import csv
 import dataclasses
 import json
 import os
-import re
 import shlex
 import shutil
 import signal
@@ -23,7 +22,6 @@ from kgnavbench.cli import main
 from kgnavbench.evaluate import EpisodeResult
 from kgnavbench.jobs import table_jobs, time_left
 from kgnavbench.table import caption, to_ablation_csv, to_csv, to_latex, to_markdown, write_table
-from kgnavbench.table_statistics import EpisodeValue, RowResult, TableResult, cell_episodes
 from kgnavbench.table_spec import (
     CELL_KEYS,
     CELLS,
@@ -34,6 +32,7 @@ from kgnavbench.table_spec import (
     load_spec,
     parse_spec,
 )
+from kgnavbench.table_statistics import EpisodeValue, RowResult, TableResult, cell_episodes
 
 PAPER_ROWS = ["Random walk", "IL", "LSTM A3C", "FF A3C", "+IL", "+TSE", "+IL+TSE", "+KG", "+KG+Attention"]
 
@@ -566,33 +565,6 @@ def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cach
     assert "min left" in whole.stdout  # while rows train, it is given
 
 
-def test_two_workers_split_the_jobs_and_table_then_only_assembles(tmp_path, hermetic_cache):
-    """`table --worker` twice at once on one runs folder: each job runs once, in one of them; a plain
-    `table` after them trains nothing and writes the table a single process writes."""
-    env = {**os.environ, "KGNAVBENCH_CACHE": str(hermetic_cache)}
-    runs = tmp_path / "shared"
-    worker = _table_cmd(runs, runs)[:-2] + ["--worker"]  # no --workers
-    procs = [subprocess.Popen(worker, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)]
-    procs.append(subprocess.Popen(worker, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env))
-    outputs = [p.communicate(timeout=900) for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], [err[-2000:] for _, err in outputs]
-    ran = [int(n) for out, _ in outputs for n in re.findall(r"^== \[(\d+)/\d+\].*claimed by pid", out, re.M)]
-    spec = load_spec()
-    assert sorted(ran) == list(range(1, len(table_jobs(spec, spec.presets["smoke"])) + 1))  # each once
-    assert all("no job of preset 'smoke' left" in out for out, _ in outputs)
-    assembled = subprocess.run(_table_cmd(runs, runs), capture_output=True, text=True, env=env)
-    assert assembled.returncode == 0, assembled.stderr[-2000:]
-    assert not re.search(r"training \w+ on \d+ kitchens", assembled.stdout)  # no run trains again
-    assert "nothing to do" in assembled.stdout
-    single = subprocess.run(
-        _table_cmd(tmp_path / "one", tmp_path / "one"), capture_output=True, text=True, env=env
-    )
-    assert single.returncode == 0, single.stderr[-2000:]
-    assert _numbers((runs / "table1-smoke.md").read_text()) == _numbers(
-        (tmp_path / "one" / "table1-smoke.md").read_text()
-    )
-
-
 def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path, capsys):
     """`--train-only` trains the preset's runs and writes no table; `--trained ZOO` takes finished runs
     from a flat folder (as zoo/ ships them), matched by their options and not by the code that trained
@@ -668,8 +640,7 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     for bad, named in (
         (["--row", "+KG"], "preset 'smoke' has no row '+KG'; its rows: Random walk; LSTM A3C"),
         (["--row", "LSTM A3C", "--job", "1"], "--row picks the rows of a table to assemble"),
-        (["--row", "LSTM A3C", "--jobs"], "--jobs, --job, --worker and --train-only assemble none"),
-        (["--row", "LSTM A3C", "--worker"], "--row picks the rows of a table to assemble"),
+        (["--row", "LSTM A3C", "--jobs"], "--jobs, --job and --train-only assemble none"),
         (["--row", "LSTM A3C", "--train-only"], "--row picks the rows of a table to assemble"),
     ):
         assert main(smoke + from_zoo + bad) == 2
