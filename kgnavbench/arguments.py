@@ -9,12 +9,13 @@ import math
 import os
 from pathlib import Path
 
+from .errors import KgnavbenchError
 from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import MAX_SEED
 from .tasks import EPISODES_PER_TARGET
 
 
-class UsageError(Exception):
+class UsageError(KgnavbenchError):
     """Bad command-line input: reported as one `kgnavbench: error: ...` line, exit status 2."""
 
 

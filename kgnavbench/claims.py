@@ -20,10 +20,11 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+from .errors import KgnavbenchError
 from .files import one_line
 
 
-class ClaimError(RuntimeError):
+class ClaimError(KgnavbenchError, RuntimeError):
     """The thing is claimed by another live process (the message says which)."""
 
 

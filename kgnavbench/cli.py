@@ -39,23 +39,22 @@ from pathlib import Path
 
 from . import arguments, plugins
 from .arguments import UsageError
-from .env import EnvError
+from .errors import KgnavbenchError
 from .evaluate import (
     SEEN_CAP,
     SPLITS,
     UNSEEN_CAP,
     EvalConfig,
-    EvalError,
     checkpoint_name,
     evaluate,
     selected_checkpoint,
 )
-from .graph import TaskError, build_all, cache_dir
-from .kitchens import KITCHEN_NAMES, KitchenError, check_name, kitchen_summary, load_kitchen
+from .graph import build_all, cache_dir
+from .kitchens import KITCHEN_NAMES, check_name, kitchen_summary, load_kitchen
 from .plugins import PluginError, load_plugin, parse_options, plugin_sources
 from .tasks import EPISODES_PER_TARGET, load_tasks
-from .walk import MAX_SIZE, MIN_SIZE, WalkError, view_size, walk
-from .world import ACTIONS, WorldError
+from .walk import MAX_SIZE, MIN_SIZE, view_size, walk
+from .world import ACTIONS
 
 METHODS_IMPORT_TIMEOUT = 20.0  # seconds `methods` gives each plugin file to import
 PROG = "kgnavbench"
@@ -73,10 +72,6 @@ def package_version() -> str:
         number = "unknown"
     revision = git_revision()
     return f"{number} ({revision})" if revision and revision != "unknown" else number
-
-
-# every stage's bad-input error: one `kgnavbench: error: ...` line and exit status 2, never a traceback
-BAD_INPUT = (UsageError, WalkError, KitchenError, WorldError, TaskError, EnvError, EvalError, PluginError)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -235,7 +230,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
         run = evaluate(config, args.runs, progress=progress)
     if args.record is not None or args.video is not None:
-        from .record import RecordError, record_episodes  # rerun loads only when recording
+        from .record import record_episodes  # rerun loads only when recording
 
         if args.record_steps is not None and args.record_steps > UNSEEN_CAP:
             progress(
@@ -243,28 +238,23 @@ def cmd_eval(args: argparse.Namespace) -> int:
                 f"{UNSEEN_CAP} actions): each episode is recorded up to its cap"
             )
 
-        try:
-            done = record_episodes(
-                args.method,
-                options,
-                args.record,
-                kitchens=list(config.kitchens) or None,
-                episodes=args.record_episodes,
-                success_rule=config.success_rule,
-                seed=config.seed,
-                stop_ends=config.stop_ends,
-                run=config.run or None,
-                # the evaluated weights: the checkpoint --checkpoint chose
-                checkpoint=(
-                    str(selected_checkpoint(config.run, config.method, config.checkpoint))
-                    if config.run
-                    else None
-                ),
-                max_steps=args.record_steps,
-                video=args.video,
-            )
-        except RecordError as e:
-            raise UsageError(str(e)) from e
+        done = record_episodes(
+            args.method,
+            options,
+            args.record,
+            kitchens=list(config.kitchens) or None,
+            episodes=args.record_episodes,
+            success_rule=config.success_rule,
+            seed=config.seed,
+            stop_ends=config.stop_ends,
+            run=config.run or None,
+            # the evaluated weights: the checkpoint --checkpoint chose
+            checkpoint=(
+                str(selected_checkpoint(config.run, config.method, config.checkpoint)) if config.run else None
+            ),
+            max_steps=args.record_steps,
+            video=args.video,
+        )
         where = " and ".join(str(p) for p in (args.record, args.video) if p is not None)
         progress(f"recorded {done['episodes']} episodes ({done['steps']} steps) to {where}")
     if args.json:
@@ -284,20 +274,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
-    from .distributed import DistributedError
-    from .models import ModelError
-    from .runs import TrainError, train_method
+    from .runs import train_method
 
     options = parse_options(args.set or [])
     kitchens = arguments.kitchen_list(args.kitchens) if args.kitchens is not None else ()
     frames = args.frames if args.frames is not None else 10_000_000
     if args.preset is not None:  # Table I's protocol: the preset's options under --set's
-        from .table_spec import SPEC_FILE, TableError, load_spec
+        from .table_spec import SPEC_FILE, load_spec
 
-        try:
-            preset = load_spec(args.spec or SPEC_FILE).preset(args.preset)
-        except TableError as e:
-            raise UsageError(str(e)) from e
+        preset = load_spec(args.spec or SPEC_FILE).preset(args.preset)
         options = {**preset.options, **options}
         frames = args.frames if args.frames is not None else preset.frames
         kitchens = kitchens or preset.train_kitchens
@@ -308,26 +293,20 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
         arguments.writable_file(args.record, "--record")
     arguments.writable_folder(args.runs, "--runs")
-    try:
-        directory = train_method(
-            args.method,
-            options,
-            frames=frames,
-            seed=args.seed,
-            kitchens=kitchens,
-            runs_dir=args.runs,
-            progress=lambda line: print(line, flush=True),
-            device=args.device,
-        )
-    except (TrainError, ModelError, DistributedError) as e:
-        raise UsageError(str(e)) from e
+    directory = train_method(
+        args.method,
+        options,
+        frames=frames,
+        seed=args.seed,
+        kitchens=kitchens,
+        runs_dir=args.runs,
+        progress=lambda line: print(line, flush=True),
+        device=args.device,
+    )
     if args.record is not None:
-        from .record import RecordError, record_training
+        from .record import record_training
 
-        try:
-            done = record_training(directory / "metrics.csv", args.record)
-        except RecordError as e:
-            raise UsageError(str(e)) from e
+        done = record_training(directory / "metrics.csv", args.record)
         print(f"recorded {done['rows']} rows of training curves to {args.record}")
     from .distributed import from_env
 
@@ -337,142 +316,121 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_figures(args: argparse.Namespace) -> int:
-    from .figures import FigureError, figures_of_table
-    from .record import RecordError
-    from .runs import TrainError
-    from .table_spec import SPEC_FILE, TableError, load_spec
+    from .figures import figures_of_table
+    from .table_spec import SPEC_FILE, load_spec
 
     if args.trained is not None and not args.trained.is_dir():
         raise UsageError(f"--trained {args.trained}: no such folder")
     device = arguments.device_name(args.device)
     rows_named = tuple(args.row or ())
-    try:  # a bad spec, an unknown preset or row is refused before any folder is made
-        spec = load_spec(args.spec or SPEC_FILE)
-        preset = spec.preset(args.preset)
-        if rows_named:
-            from .jobs import only_rows
+    spec = load_spec(args.spec or SPEC_FILE)
+    preset = spec.preset(args.preset)
+    if rows_named:
+        from .jobs import only_rows
 
-            only_rows(spec, preset, rows_named)
-    except TableError as e:
-        raise UsageError(str(e)) from e
+        only_rows(spec, preset, rows_named)
     out = args.out / "partial" if rows_named else args.out  # never over the whole preset's figures
     arguments.writable_folder(args.runs, "--runs")
     arguments.writable_folder(out, "--out")
-    try:
-        paths = figures_of_table(
-            args.preset,
-            args.runs,
-            out,
-            args.spec,
-            print,
-            trained=args.trained,
-            device=device,
-            rows_named=rows_named,
-        )
-    except (FigureError, RecordError, TableError, TrainError) as e:
-        raise UsageError(str(e)) from e
+    paths = figures_of_table(
+        args.preset,
+        args.runs,
+        out,
+        args.spec,
+        print,
+        trained=args.trained,
+        device=device,
+        rows_named=rows_named,
+    )
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from .record import RecordError, view
+    from .record import view
 
-    try:
-        return view(args.file)
-    except RecordError as e:
-        raise UsageError(str(e)) from e
+    return view(args.file)
 
 
 def cmd_encoder(args: argparse.Namespace) -> int:
     # torch loads only for the commands that need it
     import torch
 
-    from .encoder import ENCODER_FILE, EncoderError, pretrain_encoder, state_features
+    from .encoder import ENCODER_FILE, pretrain_encoder, state_features
 
-    try:
-        if args.action == "pretrain":
-            pretrain_encoder(
-                epochs=args.epochs,
-                seed=args.seed,
-                out=args.out or ENCODER_FILE,
-                samples_per_epoch=args.samples_per_epoch,
-                shift=args.shift,
-            )
-            return 0
-        torch.set_num_threads(min(2, os.cpu_count() or 1))
-        for kitchen in args.kitchens or KITCHEN_NAMES:
-            start = time.perf_counter()
-            n = len(state_features(check_name(kitchen)))
-            seconds = time.perf_counter() - start
-            print(f"{kitchen:12s} {n:6d} states  {seconds:5.1f} s  ({n / max(seconds, 1e-9):,.0f} states/s)")
-    except EncoderError as e:
-        raise UsageError(str(e)) from e
+    if args.action == "pretrain":
+        pretrain_encoder(
+            epochs=args.epochs,
+            seed=args.seed,
+            out=args.out or ENCODER_FILE,
+            samples_per_epoch=args.samples_per_epoch,
+            shift=args.shift,
+        )
+        return 0
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    for kitchen in args.kitchens or KITCHEN_NAMES:
+        start = time.perf_counter()
+        n = len(state_features(check_name(kitchen)))
+        seconds = time.perf_counter() - start
+        print(f"{kitchen:12s} {n:6d} states  {seconds:5.1f} s  ({n / max(seconds, 1e-9):,.0f} states/s)")
     return 0
 
 
 def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
-    from .distributed import DistributedError
     from .jobs import Sources, job_commands, run_job
-    from .runs import TrainError
     from .table import run_table, to_markdown, write_table
-    from .table_spec import SPEC_FILE, TableError, load_spec
+    from .table_spec import SPEC_FILE, load_spec
 
     def say(line: str) -> None:
         print(line, flush=True)
 
-    try:
-        spec = load_spec(args.spec or SPEC_FILE)
-        spec.preset(args.preset)  # an unknown preset is refused before anything runs
-        device = arguments.device_name(args.device)
-        assembles = not args.jobs and args.job is None and not args.train_only
-        if args.row and not assembles:
-            raise UsageError(
-                "--row picks the rows of a table to assemble; --jobs, --job and --train-only assemble none"
-            )
-        if args.jobs:
-            print("\n".join(job_commands(spec, args.preset, args.runs)))
-            return 0
-        if args.trained is not None and not args.trained.is_dir():
-            raise UsageError(f"--trained {args.trained}: no such folder")
-        if args.trained is not None and args.train_only:
-            raise UsageError(
-                "--trained takes runs already trained; --train-only trains them: one or the other"
-            )
-        if args.ray_node_ip and not args.ray:
-            raise UsageError("--ray-node-ip is this machine's address on a Ray cluster: give --ray too")
-        sources = Sources(args.trained, args.train_only)
-        arguments.writable_folder(args.runs, "--runs")
-        if assembles:
-            arguments.writable_folder(args.out or spec.path.parent, "--out")
-        if args.job is not None:
-            run_job(spec, args.preset, args.job, args.runs, progress=say, device=device, sources=sources)
-        if not assembles:
-            if args.job is None:
-                ray = (args.ray, args.ray_node_ip)
-                run_table(spec, args.preset, args.runs, say, args.workers, device, sources, (), *ray)
-            trained = f" --trained {args.trained}" if args.trained is not None else ""
-            print(
-                f"then `kgnavbench table --preset {args.preset} --runs {args.runs}{trained}` evaluates "
-                "what is left and assembles the table"
-            )
-            return 0
-        result = run_table(
-            spec,
-            args.preset,
-            args.runs,
-            say,
-            args.workers,
-            device,
-            sources,
-            tuple(args.row or ()),
-            args.ray,
-            args.ray_node_ip,
+    spec = load_spec(args.spec or SPEC_FILE)
+    spec.preset(args.preset)  # an unknown preset is refused before anything runs
+    device = arguments.device_name(args.device)
+    assembles = not args.jobs and args.job is None and not args.train_only
+    if args.row and not assembles:
+        raise UsageError(
+            "--row picks the rows of a table to assemble; --jobs, --job and --train-only assemble none"
         )
-        paths = write_table(result, args.out or spec.path.parent)
-    except (TableError, TrainError, DistributedError) as e:
-        raise UsageError(str(e)) from e
+    if args.jobs:
+        print("\n".join(job_commands(spec, args.preset, args.runs)))
+        return 0
+    if args.trained is not None and not args.trained.is_dir():
+        raise UsageError(f"--trained {args.trained}: no such folder")
+    if args.trained is not None and args.train_only:
+        raise UsageError("--trained takes runs already trained; --train-only trains them: one or the other")
+    if args.ray_node_ip and not args.ray:
+        raise UsageError("--ray-node-ip is this machine's address on a Ray cluster: give --ray too")
+    sources = Sources(args.trained, args.train_only)
+    arguments.writable_folder(args.runs, "--runs")
+    if assembles:
+        arguments.writable_folder(args.out or spec.path.parent, "--out")
+    if args.job is not None:
+        run_job(spec, args.preset, args.job, args.runs, progress=say, device=device, sources=sources)
+    if not assembles:
+        if args.job is None:
+            ray = (args.ray, args.ray_node_ip)
+            run_table(spec, args.preset, args.runs, say, args.workers, device, sources, (), *ray)
+        trained = f" --trained {args.trained}" if args.trained is not None else ""
+        print(
+            f"then `kgnavbench table --preset {args.preset} --runs {args.runs}{trained}` evaluates "
+            "what is left and assembles the table"
+        )
+        return 0
+    result = run_table(
+        spec,
+        args.preset,
+        args.runs,
+        say,
+        args.workers,
+        device,
+        sources,
+        tuple(args.row or ()),
+        args.ray,
+        args.ray_node_ip,
+    )
+    paths = write_table(result, args.out or spec.path.parent)
     print()
     print(to_markdown(result).rstrip())
     print(f"wrote {', '.join(str(p) for p in paths)} in {result.seconds / 60:.1f} min")
@@ -480,14 +438,13 @@ def cmd_table(args: argparse.Namespace) -> int:
 
 
 def cmd_ship(args: argparse.Namespace) -> int:
-    from .table_spec import TableError
     from .zoo import ship_run
 
     arguments.writable_folder(args.zoo, "--zoo")
     try:
         shipped = ship_run(args.run, args.zoo, ("best", "last") if args.last else ("best",))
-    except (TableError, OSError) as e:
-        raise UsageError(str(e)) from e
+    except OSError as e:
+        raise UsageError(str(e)) from e  # an unwritable zoo folder
     size = sum(f.stat().st_size for f in shipped.folder.iterdir())
     total = sum(
         f.stat().st_size for f in args.zoo.rglob("*") if f.is_file() and not f.parent.name.startswith(".")
@@ -502,24 +459,20 @@ def cmd_ship(args: argparse.Namespace) -> int:
 
 def cmd_checkpoints(args: argparse.Namespace) -> int:
     from .checkpoints import evidence, figure
-    from .figures import FigureError
-    from .table_spec import SPEC_FILE, TableError, load_spec
+    from .table_spec import SPEC_FILE, load_spec
 
-    try:
-        spec = load_spec(args.spec or SPEC_FILE)
-        spec.preset(args.preset)
-        device = arguments.device_name(args.device)
-        csv_path = args.csv or spec.path.parent / f"checkpoints-{args.preset}.csv"
-        arguments.writable_folder(csv_path.parent, "--csv")
-        lines = evidence(
-            spec, args.preset, args.runs, csv_path, args.episodes, tuple(args.row or ()), device,
-            lambda line: print(line, flush=True),
-        )  # fmt: skip
-        print(f"wrote {csv_path}: {len(lines)} snapshots of {len({x['run'] for x in lines})} runs")
-        if args.figure and lines:
-            print(f"wrote {figure(lines, args.figure, [row.name for row in spec.rows])}")
-    except (TableError, FigureError) as e:
-        raise UsageError(str(e)) from e
+    spec = load_spec(args.spec or SPEC_FILE)
+    spec.preset(args.preset)
+    device = arguments.device_name(args.device)
+    csv_path = args.csv or spec.path.parent / f"checkpoints-{args.preset}.csv"
+    arguments.writable_folder(csv_path.parent, "--csv")
+    lines = evidence(
+        spec, args.preset, args.runs, csv_path, args.episodes, tuple(args.row or ()), device,
+        lambda line: print(line, flush=True),
+    )  # fmt: skip
+    print(f"wrote {csv_path}: {len(lines)} snapshots of {len({x['run'] for x in lines})} runs")
+    if args.figure and lines:
+        print(f"wrote {figure(lines, args.figure, [row.name for row in spec.rows])}")
     return 0
 
 
@@ -914,7 +867,7 @@ def main(argv: list[str] | None = None) -> int:
             if isinstance(value, Path):
                 setattr(args, name, value.absolute())
         return args.func(args)
-    except BAD_INPUT as e:
+    except KgnavbenchError as e:  # every stage's: one line and exit status 2, never a traceback
         print(f"{PROG}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # Ctrl-C: saved results stay; the same command resumes

@@ -13,10 +13,12 @@ import os
 
 import torch
 
+from .errors import KgnavbenchError
+
 DEVICES = ("auto", "cpu", "cuda")
 
 
-class DeviceError(ValueError):
+class DeviceError(KgnavbenchError, ValueError):
     """An unknown device, or CUDA asked for where torch sees none."""
 
 

@@ -26,6 +26,8 @@ from datetime import timedelta
 import torch
 import torch.distributed as dist
 
+from .errors import KgnavbenchError
+
 CHECK_REPLICAS = "KGNAVBENCH_CHECK_REPLICAS"
 
 
@@ -45,7 +47,7 @@ SINGLE = Ranks()  # one process
 RANK_TIMEOUT = "KGNAVBENCH_RANK_TIMEOUT"  # seconds the ranks wait for each other to join (default 300)
 
 
-class DistributedError(ValueError):
+class DistributedError(KgnavbenchError, ValueError):
     """RANK / WORLD_SIZE that torchrun did not set, or set wrong, or ranks that never joined: one line."""
 
 

@@ -32,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .errors import KgnavbenchError
 from .files import atomic_write, first_line, require_checksum, write_with_checksum
 from .graph import VIEW_SIZE, cache_dir, graph_fingerprint, state_graph
 from .kitchens import DATA_DIR, check_name
@@ -46,7 +47,7 @@ ENCODER_FORMAT = 1
 PIXEL_MEAN, PIXEL_STD = 0.45, 0.25
 
 
-class EncoderError(ValueError):
+class EncoderError(KgnavbenchError, ValueError):
     """A missing or corrupt encoder file, bad views, or pretraining asked to validate on its own data."""
 
 

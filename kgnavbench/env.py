@@ -64,6 +64,7 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
+from .errors import KgnavbenchError
 from .graph import MOVES, OPEN, STOP, VIEW_SIZE, TaskError, expert_actions, goal_mask
 from .kitchens import object_types
 from .render import top_down_map
@@ -86,7 +87,7 @@ class UnknownOptionWarning(UserWarning):
     """reset(options=...) with a key the env does not know (and that is no near miss of one)."""
 
 
-class EnvError(ValueError):
+class EnvError(KgnavbenchError, ValueError):
     """Bad environment input: unknown option, target, success rule or episode."""
 
 

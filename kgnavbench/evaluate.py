@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .env import SUCCESS_RULES, parallel_env
+from .errors import KgnavbenchError
 from .files import (
     atomic_write,
     checksum_matches,
@@ -78,7 +79,7 @@ def checkpoint_name(name: str) -> str:
     raise EvalError(f"unknown checkpoint {name!r}; choose one of {CHECKPOINTS} or frames-N (a kept snapshot)")
 
 
-class EvalError(ValueError):
+class EvalError(KgnavbenchError, ValueError):
     """Bad evaluation input: unknown split or kitchen, a corrupt results file."""
 
 

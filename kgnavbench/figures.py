@@ -17,12 +17,13 @@ import cv2
 import numpy as np
 import torch
 
+from .errors import KgnavbenchError
 from .files import first_line
 from .record import read_metrics  # a bad metrics.csv is a RecordError
 from .render import type_colour
 
 
-class FigureError(ValueError):
+class FigureError(KgnavbenchError, ValueError):
     """A figure cannot be drawn: a missing or unreadable run, or unusable data."""
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import KgnavbenchError
 from .files import end_with_parent, require_checksum, write_with_checksum
 from .kitchens import KITCHEN_DIR, KITCHEN_NAMES, check_name, object_types
 from .render import Visibility, render_views, visibility
@@ -46,7 +47,7 @@ WALK_BACK_PRIORITY = ("MoveBack", "MoveLeft", "RotateRight")
 REVERSE = {"MoveBack": "MoveAhead", "MoveLeft": "MoveRight", "RotateRight": "RotateLeft"}
 
 
-class TaskError(ValueError):
+class TaskError(KgnavbenchError, ValueError):
     """Bad task input: unknown target, stale or corrupt task file, unreachable destination or state, an
     unwritable state-graph cache."""
 

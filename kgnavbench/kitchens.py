@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from functools import cache, lru_cache
 from pathlib import Path
 
+from .errors import KgnavbenchError
 from .files import atomic_write
 
 GRID = 0.25
@@ -39,7 +40,7 @@ ROOM_HEIGHT = 2.6
 DECIMALS = 3
 
 
-class KitchenError(ValueError):
+class KitchenError(KgnavbenchError, ValueError):
     """Bad kitchen input: unknown name, missing or corrupt kitchen file."""
 
 

@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .encoder import FEATURE_DIM, N_TYPES, Encoder
+from .errors import KgnavbenchError
 from .world import ACTIONS
 
 # oneDNN's bf16 kernels (AVX512-BF16 or AMX); see ActorCritic._lstm
@@ -41,7 +42,7 @@ _CPU_HAS_BF16 = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 N_ACTIONS = len(ACTIONS)
 
 
-class ModelError(ValueError):
+class ModelError(KgnavbenchError, ValueError):
     """Bad model input: unknown option, wrongly shaped tensors, a graph the model cannot use."""
 
 

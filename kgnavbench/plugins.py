@@ -52,6 +52,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from types import ModuleType
 
+from .errors import KgnavbenchError
 from .files import first_line
 from .graph import VIEW_SIZE
 from .kitchens import object_types
@@ -62,7 +63,7 @@ SOURCE_BASELINES_DIR = Path(__file__).resolve().parent.parent / "baselines"  # a
 ENTRY_POINT_GROUP = "kgnavbench.baselines"
 
 
-class PluginError(ValueError):
+class PluginError(KgnavbenchError, ValueError):
     """A plugin that is missing, fails to import or breaks the interface; or a bad option."""
 
 

@@ -42,6 +42,7 @@ import rerun.blueprint as rrb
 
 from . import evaluate
 from .env import parallel_env
+from .errors import KgnavbenchError
 from .graph import MOVES
 from .plugins import PluginError, guarded, load_plugin
 from .render import top_down_map
@@ -55,7 +56,7 @@ TOP_ATTENDED = 3
 RRD_MAGIC = b"RRF"  # every .rrd file rerun 0.41 writes starts with "RRF2"
 
 
-class RecordError(ValueError):
+class RecordError(KgnavbenchError, ValueError):
     """Bad recording input: a missing or foreign .rrd file, an unreadable metrics.csv, bad data."""
 
 

@@ -23,6 +23,7 @@ import torch
 from . import claims, distributed
 from .device import DeviceError, name_of, resolve
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS
+from .errors import KgnavbenchError
 from .files import (
     atomic_write,
     checksum_matches,
@@ -38,7 +39,7 @@ from .tasks import EPISODES_PER_TARGET, N_VAL_KITCHENS, load_task_file
 EXPERTS = ("walk_back", "shortest", "dagger")
 
 
-class TrainError(ValueError):
+class TrainError(KgnavbenchError, ValueError):
     """Bad training input or state: a bad option, a run directory holding another config, a corrupt
     checkpoint. Reported as one line."""
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .env import SUCCESS_RULES
+from .errors import KgnavbenchError
 from .evaluate import SEEN_CAP, UNSEEN_CAP
 from .kitchens import KITCHEN_NAMES
 from .plugins import available
@@ -47,7 +48,7 @@ METRICS = ("SPL", "SR")  # in the paper's order; a `paper` pair is [SPL, SR]
 PERCENT = 100.0  # episode values are kept in percent: every mean and interval is then in percent
 
 
-class TableError(ValueError):
+class TableError(KgnavbenchError, ValueError):
     """A bad table spec (the message names the file and the field) or a failed table run."""
 
 

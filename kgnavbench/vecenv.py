@@ -83,6 +83,7 @@ from gymnasium.vector.utils import batch_space
 
 from .encoder import FEATURE_DIM, N_TYPES, encoder_feature_stats, standardize, state_features
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, _is_integer, transition
+from .errors import KgnavbenchError
 from .graph import VIEW_SIZE
 from .kitchens import KITCHEN_NAMES, check_name, object_types
 from .render import top_down_map
@@ -93,7 +94,7 @@ SPLIT_NAMES = ("train", "val", "test")
 TARGET_SETS = ("seen", "all")
 
 
-class VecEnvError(ValueError):
+class VecEnvError(KgnavbenchError, ValueError):
     """Bad input: an unknown kitchen, split, target set or rule; actions of the wrong shape."""
 
 

@@ -14,6 +14,7 @@ import re
 import sys
 from pathlib import Path
 
+from .errors import KgnavbenchError
 from .kitchens import Kitchen, load_kitchen
 from .world import ACTIONS, Pose, World, parse_action, parse_pose
 
@@ -22,7 +23,7 @@ MAP_MIN_SIZE = 300
 MAX_RANDOM_ACTIONS = 100_000  # a walk prints a line per step: more is a typo, not a walk
 
 
-class WalkError(ValueError):
+class WalkError(KgnavbenchError, ValueError):
     """Bad walk input (actions, start pose, output folder): one `kgnavbench: error: ...` line, exit 2."""
 
 

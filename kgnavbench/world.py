@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 
 import pymunk
 
+from .errors import KgnavbenchError
 from .kitchens import Kitchen, KitchenError, KitchenObject, load_kitchen
 
 ACTIONS = (
@@ -51,7 +52,7 @@ OBJECT, WALL, NAV, DOOR, AGENT = 1, 2, 4, 8, 16
 SOLID = OBJECT | WALL | DOOR  # what rays see
 
 
-class WorldError(ValueError):
+class WorldError(KgnavbenchError, ValueError):
     """Bad world input: unknown action, pose or object."""
 
 

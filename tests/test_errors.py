@@ -523,3 +523,31 @@ def test_methods_lists_a_plugin_that_blocks_at_import_without_waiting(capsys, lo
     assert code == 0
     (line,) = [line for line in out.splitlines() if "stuck" in line]
     assert "BROKEN" in line and "its import did not return within 1 s" in line
+
+
+def test_every_error_class_of_the_package_has_the_one_base_that_main_catches():
+    """Each stage's error class derives from KgnavbenchError, which `cli.main` catches once (one line,
+    exit status 2); none is left out to end in a traceback."""
+    import importlib
+    import inspect
+    import pkgutil
+
+    import kgnavbench
+    from kgnavbench.errors import KgnavbenchError
+
+    classes = {}
+    for info in pkgutil.iter_modules(kgnavbench.__path__):
+        if info.name == "__main__":  # runs the command line when imported
+            continue
+        module = importlib.import_module(f"kgnavbench.{info.name}")
+        for name, value in vars(module).items():
+            if (
+                inspect.isclass(value)
+                and issubclass(value, Exception)
+                and not issubclass(value, Warning)  # a warning is no error
+                and value.__module__ == module.__name__
+            ):
+                classes[f"{info.name}.{name}"] = value
+    assert len(classes) >= 19, sorted(classes)
+    outside = sorted(name for name, cls in classes.items() if not issubclass(cls, KgnavbenchError))
+    assert not outside, f"error classes without the base: {outside}"
