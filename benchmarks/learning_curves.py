@@ -40,7 +40,7 @@ import torch
 
 from kgnavbench.arguments import frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
 from kgnavbench.evaluate import EvalConfig, evaluate
-from kgnavbench.figures import curves_figure
+from kgnavbench.plots import curves_figure
 from kgnavbench.runs import train_method
 from kgnavbench.table_spec import TableError, load_spec
 

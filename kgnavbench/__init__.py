@@ -3,17 +3,21 @@
 Importing the package registers its Gymnasium ids (kgnavbench/vecenv.py): `kgnavbench/FloorPlan1-v0`
 .. `kgnavbench/FloorPlan30-v0`, `kgnavbench/train-v0`, `kgnavbench/val-v0`, `kgnavbench/test-v0`. The
 registration names the entry points as strings, so it imports neither torch nor the env: the
-command line starts fast. `kgnavbench.evaluate_policy` (kgnavbench/evaluate.py) evaluates a policy of
+command line starts fast. `kgnavbench.evaluate_policy` (kgnavbench/own_policy.py) evaluates a policy of
 your own on Table I's fixed episodes, and raises `kgnavbench.EvalError` (a ValueError) with one line
 naming what is wrong; both load on first use.
 """
 
 
 def __getattr__(name: str):
-    if name in ("evaluate_policy", "EvalError"):  # on first use: importing the package stays light
-        from . import evaluate
+    if name == "evaluate_policy":  # on first use: importing the package stays light
+        from .own_policy import evaluate_policy
 
-        return getattr(evaluate, name)
+        return evaluate_policy
+    if name == "EvalError":
+        from .evaluate import EvalError
+
+        return EvalError
     raise AttributeError(f"module 'kgnavbench' has no attribute {name!r}")
 
 

@@ -15,8 +15,8 @@ import pytest
 import torch
 from rerun.chunk import RrdReader
 
-from kgnavbench import figures, record
-from kgnavbench.figures import FigureError
+from kgnavbench import figures, plots, record
+from kgnavbench.plots import FigureError
 from kgnavbench.plugins import PluginError
 from kgnavbench.record import RecordError
 
@@ -216,7 +216,7 @@ def _is_figure(path, size=(1000, 600)) -> bool:
 
 def test_figures_are_pngs_of_the_right_size(tmp_path):
     labels = ["Random walk", "LSTM A3C", "+KG+Attention (ours)"]
-    p = figures.bar_line_figure(
+    p = plots.bar_line_figure(
         labels,
         [12.0, 5.5, 1.7],
         [3.0, float("nan"), 44.1],
@@ -227,14 +227,14 @@ def test_figures_are_pngs_of_the_right_size(tmp_path):
     )
     assert _is_figure(p)
     pts = np.array([[0.0, 0.0], [1.0, 2.0], [3.0, -1.0]])
-    assert _is_figure(figures.scatter_figure(pts, ["Fridge", "Egg", "Apple"], tmp_path / "b.png", "t-SNE"))
+    assert _is_figure(plots.scatter_figure(pts, ["Fridge", "Egg", "Apple"], tmp_path / "b.png", "t-SNE"))
     series = {"a": ([0, 1000, 2000], [0.0, 0.2, 0.5]), "b": ([0, 1000, 2000], [0.1, float("nan"), 0.7])}
-    assert _is_figure(figures.curves_figure(series, tmp_path / "c.png", "curves", "frames", "SR"))
+    assert _is_figure(plots.curves_figure(series, tmp_path / "c.png", "curves", "frames", "SR"))
     assert _is_figure(
-        figures.curves_figure(series, tmp_path / "d.png", "small", "x", "y", size=(640, 400)), (640, 400)
+        plots.curves_figure(series, tmp_path / "d.png", "small", "x", "y", size=(640, 400)), (640, 400)
     )
     with pytest.raises(FigureError):
-        figures.bar_line_figure(labels, [1.0], [1.0], tmp_path / "e.png", "t", "a", "b")
+        plots.bar_line_figure(labels, [1.0], [1.0], tmp_path / "e.png", "t", "a", "b")
 
 
 def test_recording_costs_nothing_when_off():
@@ -328,7 +328,7 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks, monkeypatch):
     assert not notes
     sizes = {"tsne_gcn.png": figures.TSNE_SIZE, "attention_example.png": figures.ATTENTION_SIZE}
     for p in paths:
-        assert _is_figure(p, sizes.get(p.name, figures.FIGURE_SIZE)), p
+        assert _is_figure(p, sizes.get(p.name, plots.FIGURE_SIZE)), p
 
     # the attention example's step: weights over the types in the view or the target, summing to 1;
     # a softmax over all nodes weighs the others too ("in neither"), and figures() prefers the former
