@@ -1,6 +1,8 @@
-"""The command line's value types and input checks (kgnavbench/cli.py's), each failing with a
-UsageError: one `kgnavbench: error: ...` line and exit status 2, before any work starts. A helper
-without a stage number."""
+"""The command line's arguments (kgnavbench/cli.py's): each subcommand's own builder (`eval_arguments`,
+`table_arguments`, ...: the parser of one command, its options grouped with their help, as Sample
+Factory's argument builders), the options several share (`runs_option`, `device_option`), and the value
+types and input checks, each failing with a UsageError: one `kgnavbench: error: ...` line and exit status
+2, before any work starts. A helper without a stage number."""
 
 from __future__ import annotations
 
@@ -10,13 +12,23 @@ import os
 from pathlib import Path
 
 from .errors import KgnavbenchError
+from .evaluate import SPLITS, checkpoint_name
 from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import MAX_SEED
 from .tasks import EPISODES_PER_TARGET
+from .walk import MAX_SIZE, MIN_SIZE, view_size
+from .world import ACTIONS
 
 
 class UsageError(KgnavbenchError):
     """Bad command-line input: reported as one `kgnavbench: error: ...` line, exit status 2."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse that raises instead of printing usage and exiting, so `main` reports every error alike."""
+
+    def error(self, message: str):
+        raise UsageError(f"{message} (see `{self.prog} --help`)")
 
 
 def kitchen_list(text: str | None) -> list[str]:
@@ -121,3 +133,394 @@ def frames(text: str) -> int:
 
 def episodes(text: str) -> int:
     return integer_in(text, 1, EPISODES_PER_TARGET)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Each subcommand's arguments (cli.build_parser gives each its command)
+
+
+def runs_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+
+
+def device_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--device",
+        default="auto",
+        metavar="auto|cpu|cuda",
+        help="where torch computes (default auto: CUDA where there is a GPU, else the CPU); a run "
+        "records it, since CUDA's numbers are not the CPU's",
+    )
+
+
+def kitchens_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench kitchens`'s arguments."""
+    p = sub.add_parser(
+        "kitchens",
+        help="list the kitchens, or one kitchen's objects",
+        description="Without NAME: the 30 kitchens with their reachable cells, objects, hidden objects and "
+        "openable receptacles. With NAME: that kitchen's objects (id, type, parent receptacle, hidden).",
+    )
+    p.add_argument("name", nargs="?", metavar="NAME", help="a kitchen, FloorPlan1 .. FloorPlan30")
+    p.add_argument("--json", action="store_true", help="print JSON (a list of objects) instead of a table")
+    return p
+
+
+def walk_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench walk`'s arguments."""
+    p = sub.add_parser(
+        "walk",
+        help="walk the agent through a kitchen, printing what it sees",
+        description="Step the agent through a kitchen and print, per step, the action, whether it "
+        "succeeded, the pose, the open receptacle and the visible objects. Stop is stepped like any "
+        "other action (the walk goes on).",
+    )
+    p.add_argument("--kitchen", required=True, metavar="NAME", help="FloorPlan1 .. FloorPlan30")
+    p.add_argument(
+        "--actions",
+        required=True,
+        metavar="A,B,...",
+        help=f"comma-separated actions ({', '.join(ACTIONS)}) and/or random:N for N random actions",
+    )
+    p.add_argument(
+        "--start",
+        metavar="X,Z,HEADING,PITCH",
+        help="start pose in metres and degrees (default: the world's initial pose)",
+    )
+    p.add_argument("--seed", type=seed, default=0, help="seed of the random actions (default 0)")
+    p.add_argument(
+        "--placement-seed",
+        type=int,
+        default=None,
+        metavar="S",
+        help="re-place movable objects with one of the kitchen's real placements chosen by S "
+        "(default: the AI2-THOR start scene)",
+    )
+    p.add_argument(
+        "--size",
+        type=view_size,
+        default=300,
+        help=f"view size in pixels, {MIN_SIZE}..{MAX_SIZE} (default 300)",
+    )
+    p.add_argument("--out", type=Path, metavar="DIR", help="write view_NNN.png per step and map.png here")
+    p.add_argument("--json", action="store_true", help="print one JSON object per step instead of a table")
+    return p
+
+
+def prepare_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench prepare`'s arguments."""
+    p = sub.add_parser(
+        "prepare",
+        help="build and cache the state graphs and 84x84 views of the kitchens",
+        description="Build every kitchen's state graph (transitions, visibility, views) into the cache "
+        "($KGNAVBENCH_CACHE, else ~/.cache/kgnavbench). Other commands build what they need on first "
+        "use; this does it up front, one process per core.",
+    )
+    p.add_argument("--kitchens", metavar="A,B", help="comma-separated kitchens (default: all 30)")
+    p.add_argument("--workers", type=positive, default=None, help="processes (default: one per core)")
+    return p
+
+
+def targets_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench targets`'s arguments."""
+    p = sub.add_parser(
+        "targets",
+        help="a kitchen's targets: kind, seen or unseen, destination, episodes",
+        description="The targets of one kitchen with their kind (static/actionable), whether they are "
+        "training (seen) targets, their destination pose and the receptacle open there.",
+    )
+    p.add_argument("name", metavar="NAME", help="a kitchen, FloorPlan1 .. FloorPlan30")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    return p
+
+
+def methods_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench methods`'s arguments."""
+    p = sub.add_parser("methods", help="list the baseline plugins", description="List the plugins.")
+    return p
+
+
+def eval_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench eval`'s arguments."""
+    p = sub.add_parser(
+        "eval",
+        help="evaluate one method on the fixed episodes and print the Table I layout",
+        description="Run a method's plugin over the fixed evaluation episodes (the same for every "
+        "method) and print SR, SPL, their L>=5 buckets, collisions, last-view rate and episode length "
+        "per Table I column and target kind. Results go to RUNS/eval/<run name>/; rerunning the same "
+        "evaluation resumes from the kitchens already saved there.",
+    )
+    p.add_argument("--method", required=True, metavar="NAME", help="a plugin (see `kgnavbench methods`)")
+    p.add_argument(
+        "--success-rule",
+        choices=("destination", "visible"),
+        default="destination",
+        help="success = Stop at the target's destination, the paper's rule (default), or anywhere the "
+        "target is visible (SAVN's)",
+    )
+    p.add_argument("--stop-noop", action="store_true", help="a Stop that does not succeed is a no-op")
+    p.add_argument("--split", choices=SPLITS, default="table", help="table = train + test kitchens (default)")
+    p.add_argument("--kitchens", metavar="A,B", help="only these kitchens (default: all of the split)")
+    p.add_argument(
+        "--episodes",
+        type=episodes,
+        default=EPISODES_PER_TARGET,
+        metavar="N",
+        help=f"the first N fixed episodes of every target (default {EPISODES_PER_TARGET})",
+    )
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a plugin option (repeatable)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the policy (default 0)")
+    runs_option(p)
+    p.add_argument(
+        "--run",
+        type=Path,
+        metavar="DIR",
+        help="a learned method's training run (its best-validation checkpoint)",
+    )
+    p.add_argument(
+        "--checkpoint",
+        type=checkpoint_name,
+        default="best",
+        metavar="{best,last,frames-N}",
+        help="which of the run's checkpoints: best.pt, the best validation SR (Table I's rule, default), "
+        "last.pt, its latest weights (the final ones of a finished run), or frames-N, a snapshot kept "
+        "with keep_every",
+    )
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--record", type=Path, metavar="FILE.rrd", help="also record episodes with rerun")
+    p.add_argument(
+        "--video",
+        type=Path,
+        metavar="FILE.mp4",
+        help="also write the recorded episodes (--record-episodes) as a video: the view and the target "
+        "image beside the top-down map, the action in its caption",
+    )
+    p.add_argument(
+        "--step-timeout",
+        type=seconds,
+        metavar="SECONDS",
+        help="end the evaluation with one line if a policy's act() (or reset, make_policy) has not "
+        "returned within SECONDS; without it, kgnavbench says every minute which kitchen and step it "
+        "is waiting on",
+    )
+    p.add_argument(
+        "--record-episodes",
+        type=positive,
+        default=2,
+        metavar="N",
+        help="episodes to record (default 2)",
+    )
+    p.add_argument(
+        "--record-steps",
+        type=frames,
+        metavar="N",
+        help="end each recorded episode after N actions (default: the evaluation's cap)",
+    )
+    device_option(p)
+    return p
+
+
+def train_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench train`'s arguments."""
+    p = sub.add_parser(
+        "train",
+        help="train a learned method on the training kitchens' seen targets",
+        description="Train a learned plugin (one with a train hook) into RUNS/train/<method>-<hash>/: "
+        "config.json (with the git revision), metrics.csv, last.pt and best.pt (best validation SR). The "
+        "same command resumes a killed run from last.pt and does nothing for a finished one. The last "
+        "line printed is the run directory.",
+    )
+    p.add_argument(
+        "--method", required=True, metavar="NAME", help="a learned plugin (see `kgnavbench methods`)"
+    )
+    p.add_argument(
+        "--preset",
+        metavar="NAME",
+        help="train under a Table I preset's protocol (quick, paper, ... of the spec): its options "
+        "(--set's win), frames and kitchens; the run is the one `kgnavbench table` trains for a row "
+        "with the same options. Without it: the plugin's own defaults, 10M frames",
+    )
+    p.add_argument(
+        "--spec", type=Path, help="the table spec --preset comes from (default tables/table1.toml)"
+    )
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a training option (repeatable)")
+    p.add_argument(
+        "--frames",
+        type=frames,
+        help="frames (agent steps) to train (default: the preset's, else 10,000,000)",
+    )
+    p.add_argument("--seed", type=seed, default=0, help="seed (default 0)")
+    p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")
+    runs_option(p)
+    p.add_argument("--record", type=Path, metavar="FILE.rrd", help="record the training curves with rerun")
+    device_option(p)
+    return p
+
+
+def figures_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench figures`'s arguments."""
+    p = sub.add_parser(
+        "figures",
+        help="the paper's figures from a Table I preset's runs (PNG)",
+        description="Collisions per episode and last-view-shows-target rate on unseen kitchens per "
+        "method, a t-SNE of the KG model's third GCN layer, and the training curves, from the runs of "
+        "`kgnavbench table --preset PRESET` (missing runs are trained and evaluated first; with "
+        "--trained DIR, the trained runs come from DIR and a missing one is an error, never trained).",
+    )
+    p.add_argument("--preset", default="quick", help="the table preset whose runs to draw (default quick)")
+    p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
+    runs_option(p)
+    p.add_argument(
+        "--trained",
+        type=Path,
+        metavar="DIR",
+        help="take the preset's trained runs from DIR (zoo/), as `table --trained` does: evaluate what "
+        "is not evaluated in --runs, never train",
+    )
+    p.add_argument(
+        "--row",
+        action="append",
+        metavar="NAME",
+        help="only this row of the preset, as named in the spec (repeatable): the others are neither "
+        "trained, evaluated nor drawn, and the figures go to OUT/partial/, never over the whole preset's",
+    )
+    device_option(p)
+    p.add_argument("--out", type=Path, default=Path("docs/figures"), help="output folder (docs/figures)")
+    return p
+
+
+def ship_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench ship`'s arguments."""
+    p = sub.add_parser(
+        "ship",
+        help="copy a finished training run into zoo/, weights only, for `eval --run` and `table --trained`",
+        description="Copy a finished run (RUNS/train/<method>-<hash>/) into ZOO/<method>-<hash>/: "
+        "config.json, metrics.csv, finished.json and best.pt (Table I's checkpoint; with --last also "
+        "last.pt), each checkpoint weights-only, as trained (fp32), with its sha256. Prints the "
+        "folder's size and what zoo/README.md lists of it. Never replaces a folder already there.",
+    )
+    p.add_argument("run", type=Path, metavar="RUN_DIR", help="a finished training run")
+    p.add_argument("--zoo", type=Path, default=Path("zoo"), help="where shipped runs live (default zoo/)")
+    p.add_argument("--last", action="store_true", help="also ship last.pt, the final weights")
+    return p
+
+
+def checkpoints_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench checkpoints`'s arguments."""
+    p = sub.add_parser(
+        "checkpoints",
+        help="evaluate every kept snapshot of the preset's finished runs into one CSV (and a figure)",
+        description="For each finished run of the preset's learned rows in the runs folder: evaluate "
+        "each snapshot it kept (keep_every) on the table's fixed episodes, a few per target, and merge "
+        "one line per snapshot (validation SR, each cell's SR and SPL) into the CSV, so that any "
+        "checkpoint rule can be replayed without training. Run it when a run finishes: its snapshots "
+        "are not shipped.",
+    )
+    p.add_argument("--preset", default="paper", help="the spec's preset whose runs to read (default paper)")
+    p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
+    runs_option(p)
+    p.add_argument("--episodes", type=positive, default=5, help="episodes per target (default 5)")
+    p.add_argument("--row", action="append", metavar="NAME", help="only this row (repeatable)")
+    p.add_argument("--csv", type=Path, help="default: tables/checkpoints-<preset>.csv")
+    p.add_argument("--figure", type=Path, help="also draw validation against each column over frames")
+    device_option(p)
+    return p
+
+
+def view_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench view`'s arguments."""
+    p = sub.add_parser(
+        "view",
+        help="open a recording (.rrd) in the rerun viewer",
+        description="Open FILE.rrd in the rerun viewer; without a display, say how to watch it.",
+    )
+    p.add_argument("file", type=Path, metavar="FILE.rrd")
+    return p
+
+
+def table_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench table`'s arguments."""
+    p = sub.add_parser(
+        "table",
+        help="regenerate the paper's Table I from the table spec (train, select, evaluate, write)",
+        description="For each row of the table spec: train unless a finished run with the same config "
+        "exists (an unfinished one resumes), take the checkpoint with the best validation SR, evaluate "
+        "it on the fixed episodes, then write table1.md/.csv/.tex and print the table. Killed and "
+        "re-run, it continues where it stopped.",
+    )
+    p.add_argument("--preset", default="quick", help="smoke | quick (default) | paper, as in the spec")
+    p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
+    runs_option(p)
+    p.add_argument("--out", type=Path, help="where the tables go (default: the spec's folder, tables/)")
+    p.add_argument(
+        "--workers",
+        type=positive,
+        default=os.cpu_count() or 1,
+        help="jobs (row x seed) run at once, each in its own process (default: one per core); the "
+        "table is the same for any number, only the wall time differs",
+    )
+    many = p.add_mutually_exclusive_group()
+    many.add_argument(
+        "--jobs",
+        action="store_true",
+        help="print one command per job (row x seed) and exit, for many machines",
+    )
+    many.add_argument("--job", type=int, metavar="N", help="run job N of --jobs' list only (no table)")
+    many.add_argument(
+        "--ray",
+        metavar="ADDRESS",
+        help="run every job as a task on the Ray cluster at ADDRESS (as ray.init takes it: HOST:PORT, "
+        "or auto), then assemble the table; the runs folder must be the same path on every node "
+        "(docs/scaling.md); needs kgnavbench[ray]",
+    )
+    p.add_argument(
+        "--ray-node-ip",
+        metavar="IP",
+        help="this machine's address on the Ray cluster, where Ray would guess another (a cluster on "
+        "loopback addresses)",
+    )
+    p.add_argument(
+        "--trained",
+        type=Path,
+        metavar="DIR",
+        help="take every trained run from DIR (zoo/, or another runs folder) and only evaluate and "
+        "assemble: a run there counts when its method, options, frames, seed and kitchens are the "
+        "preset's, whatever code revision trained it; a missing one is an error, never trained",
+    )
+    p.add_argument(
+        "--train-only",
+        action="store_true",
+        help="train the preset's runs (all, or --job N's) and stop: no evaluation, "
+        "no table; a later `table` evaluates and assembles",
+    )
+    p.add_argument(
+        "--row",
+        action="append",
+        metavar="NAME",
+        help="only this row of the preset, as named in the spec (repeatable): a partial table, written "
+        "as table1-<preset>-partial.* (quick: table1-partial.*; the last one replaces an earlier one) "
+        "and captioned with the rows it leaves out",
+    )
+    device_option(p)
+    return p
+
+
+def encoder_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench encoder`'s arguments."""
+    p = sub.add_parser(
+        "encoder",
+        help="retrain the frozen view encoder, or encode every state's view (cached)",
+        description="pretrain: train the view encoder on the training kitchens' views (supervised: "
+        "visible types, pitch, open receptacle) and write it; features: encode every state's view of "
+        "the kitchens once, into the cache beside their state graphs.",
+    )
+    actions = p.add_subparsers(dest="action", required=True, parser_class=Parser)
+    q = actions.add_parser("pretrain", help="train the view encoder on the training kitchens' views")
+    q.add_argument("--epochs", type=positive, default=8)
+    q.add_argument("--samples-per-epoch", type=positive, default=16_000)
+    q.add_argument("--shift", type=int, default=4, help="random shift of the views in pixels (0: none)")
+    q.add_argument("--seed", type=seed, default=0)
+    q.add_argument("--out", type=Path, help="where the weights go (default: the committed encoder file)")
+    q = actions.add_parser("features", help="encode every state's view of the kitchens, cached")
+    q.add_argument("kitchens", nargs="*", metavar="NAME", help="default: all 30")
+    return p
