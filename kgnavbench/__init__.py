@@ -1,11 +1,11 @@
 """kgnavbench: target-driven visual navigation in the 30 iTHOR kitchens (README.md, DESIGN.md).
 
-Importing the package registers its Gymnasium ids (kgnavbench/vecenv.py): `kgnavbench/FloorPlan1-v0`
-.. `kgnavbench/FloorPlan30-v0`, `kgnavbench/train-v0`, `kgnavbench/val-v0`, `kgnavbench/test-v0`. The
-registration names the entry points as strings, so it imports neither torch nor the env: the
-command line starts fast. `kgnavbench.evaluate_policy` (kgnavbench/own_policy.py) evaluates a policy of
-your own on Table I's fixed episodes, and raises `kgnavbench.EvalError` (a ValueError) with one line
-naming what is wrong; both load on first use.
+Importing the package registers its Gymnasium ids (kgnavbench/vecenv.py, kgnavbench/gymenv.py):
+`kgnavbench/FloorPlan1-v0` .. `kgnavbench/FloorPlan30-v0`, `kgnavbench/train-v0`, `kgnavbench/val-v0`,
+`kgnavbench/test-v0`. The registration names the entry points as strings, so it imports neither torch
+nor the env: the command line starts fast. `kgnavbench.evaluate_policy` (kgnavbench/own_policy.py)
+evaluates a policy of your own on Table I's fixed episodes, and raises `kgnavbench.EvalError` (a
+ValueError) with one line naming what is wrong; both load on first use.
 """
 
 
@@ -30,7 +30,7 @@ def _register_gymnasium_ids() -> None:
         if env_id not in registry:
             register(
                 id=env_id,
-                entry_point="kgnavbench.vecenv:NavigationGymEnv",
+                entry_point="kgnavbench.gymenv:NavigationGymEnv",
                 vector_entry_point="kgnavbench.vecenv:NavigationVectorEnv",
                 kwargs={"kitchens": name},
             )

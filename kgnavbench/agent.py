@@ -1,4 +1,4 @@
-"""Stage 13 — agent: the actor-critic network with what it needs around it, and fixed episodes run
+"""Stage 14 — agent: the actor-critic network with what it needs around it, and fixed episodes run
 with it.
 
 `Model` wraps a network (kgnavbench/models.py) with its device, its bf16 autocast, the knowledge

@@ -21,6 +21,7 @@ every number here is in percent). Everything is deterministic given `seed`: an i
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -219,3 +220,16 @@ def _check(per_seed: Sequence[SeedEpisodes]) -> None:
     empty = [s for s, episodes in enumerate(per_seed) if not episodes]
     if empty:
         raise ValueError(f"seed(s) {empty} have no episodes")
+
+
+def standard_error(sr: float, episodes: int) -> float:
+    """The binomial standard error (points) of an SR in percent measured on `episodes` episodes."""
+    p = min(max(sr / 100.0, 0.0), 1.0)
+    return 100.0 * math.sqrt(p * (1.0 - p) / max(episodes, 1))
+
+
+def within_one_standard_error(val_sr: float, val_max: float, episodes: int) -> bool:
+    """The one-standard-error reading of the checkpoint rule, as a replay over metrics.csv (the trainer
+    keeps the best, the paper's words): a validation SR within one standard error of the best so far
+    (val_max, this one included) would select its checkpoint, the latest such one kept."""
+    return val_sr >= val_max - standard_error(val_max, episodes)

@@ -1,4 +1,4 @@
-"""Stage 12 — losses: what the learner minimises, and the data of its imitation and skill-extension terms.
+"""Stage 13 — losses: what the learner minimises, and the data of its imitation and skill-extension terms.
 
 1. The losses. `n_step_returns`, `actor_critic_loss` (policy gradient, value loss with weight
    `value_weight`, entropy bonus; optional per-sample weights for TSE's importance weights),

@@ -1,4 +1,4 @@
-"""Stage 10 — models: the actor-critic networks of the learned methods (DESIGN.md "Learned agents"),
+"""Stage 11 — models: the actor-critic networks of the learned methods (DESIGN.md "Learned agents"),
 over the frozen encoder's per-state features (`kgnavbench.encoder`).
 
 `ModelConfig`, `make_model` -> `ActorCritic`:

@@ -1,4 +1,4 @@
-"""Stage 9 — plugins: the baseline plugin interface and its registry.
+"""Stage 10 — plugins: the baseline plugin interface and its registry.
 
 A plugin is one Python file (the file name is the method name, `--method NAME`) in one of
   * the shipped baselines: the repository's `baselines/`, installed as the package `kgnavbench_baselines`;

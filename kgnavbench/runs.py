@@ -1,4 +1,4 @@
-"""Stage 11 — runs: a learned method's options and its run directory.
+"""Stage 12 — runs: a learned method's options and its run directory.
 
 `TrainOptions` holds every option a learned method shares (a plugin's `Config` extends it; `--set
 key=value`). `train_method` resolves a plugin's config into a run directory `runs/train/<method>-<hash>/`
@@ -11,9 +11,11 @@ shipped methods is `kgnavbench.train.learn`.
 from __future__ import annotations
 
 import ast
+import csv
 import hashlib
 import io
 import json
+import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -431,3 +433,32 @@ def load_checkpoint(path: Path | str) -> dict:
         raise TrainError(
             f"checkpoint {path} is corrupt ({type(e).__name__}: {first_line(e)}); delete it to start over"
         ) from e
+
+
+# metrics.csv on resume
+
+
+def read_metrics_rows(path: Path, up_to: int) -> list[dict]:
+    """The rows of metrics.csv up to a frame count (a resumed run drops what it will redo)."""
+    if not path.exists():
+        return []
+    rows = []
+    for row in csv.DictReader(path.read_text().splitlines()):
+        try:
+            if int(row["frames"]) <= up_to and None not in row.values():
+                rows.append(row)
+        except (KeyError, TypeError, ValueError):
+            continue
+    return rows
+
+
+def seconds_at(rows: list[dict], frames: int) -> float | None:
+    """The training time metrics.csv's rows give at a frame count (a resume point), if one does."""
+    for row in reversed(rows):
+        try:
+            if int(row["frames"]) == frames:
+                seconds = float(row.get("seconds") or "nan")
+                return seconds if math.isfinite(seconds) and seconds >= 0 else None
+        except (KeyError, ValueError):
+            return None
+    return None

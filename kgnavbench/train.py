@@ -1,4 +1,4 @@
-"""Stage 14 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
+"""Stage 15 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
 imitation learning (IL), target skill extension (TSE), checkpoints, logs and resumption.
 
 It stands on the stages before it: the run directory, options and checkpoints (kgnavbench/runs.py),
@@ -39,6 +39,7 @@ from .agent import Model, detached, keep_rows, rows_of, run_episodes
 from .env import reward
 from .files import atomic_write, duration_text
 from .graph import STOP
+from .intervals import standard_error
 from .kitchens import KITCHEN_NAMES
 from .losses import (
     Sequences,
@@ -63,7 +64,9 @@ from .runs import (
     TrainOptions,
     checkpoint_differences,
     load_checkpoint,
+    read_metrics_rows,
     save_checkpoint,
+    seconds_at,
 )
 from .tasks import load_task_file
 from .vecenv import NavigationVectorEnv, StateSpace, build_space, curriculum_reach
@@ -623,45 +626,6 @@ class Trainer:
 # 2. The loop: logs, checkpoints, resumption
 
 
-def standard_error(sr: float, episodes: int) -> float:
-    """The binomial standard error (points) of an SR in percent measured on `episodes` episodes."""
-    p = min(max(sr / 100.0, 0.0), 1.0)
-    return 100.0 * math.sqrt(p * (1.0 - p) / max(episodes, 1))
-
-
-def within_one_standard_error(val_sr: float, val_max: float, episodes: int) -> bool:
-    """The one-standard-error reading of the checkpoint rule, as a replay over metrics.csv (the trainer
-    keeps the best, the paper's words): a validation SR within one standard error of the best so far
-    (val_max, this one included) would select its checkpoint, the latest such one kept."""
-    return val_sr >= val_max - standard_error(val_max, episodes)
-
-
-def _read_metrics(path: Path, up_to: int) -> list[dict]:
-    """The rows of metrics.csv up to a frame count (a resumed run drops what it will redo)."""
-    if not path.exists():
-        return []
-    rows = []
-    for row in csv.DictReader(path.read_text().splitlines()):
-        try:
-            if int(row["frames"]) <= up_to and None not in row.values():
-                rows.append(row)
-        except (KeyError, TypeError, ValueError):
-            continue
-    return rows
-
-
-def _seconds_at(rows: list[dict], frames: int) -> float | None:
-    """The training time metrics.csv's rows give at a frame count (a resume point), if one does."""
-    for row in reversed(rows):
-        try:
-            if int(row["frames"]) == frames:
-                seconds = float(row.get("seconds") or "nan")
-                return seconds if math.isfinite(seconds) and seconds >= 0 else None
-        except (KeyError, ValueError):
-            return None
-    return None
-
-
 def _csv_text(rows: list[dict]) -> str:
     out = io.StringIO()
     writer = csv.DictWriter(out, METRICS)
@@ -703,10 +667,10 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
         progress(f"resumed {run.directory} from {last.name} at {trainer.frames:,} frames")
     seconds_before = 0.0  # the training time of the sessions before a resume: the resume point's row's
     if ranks.main:
-        kept = _read_metrics(metrics_path, trainer.frames)
+        kept = read_metrics_rows(metrics_path, trainer.frames)
         atomic_write(metrics_path, _csv_text(kept))
         if trainer.frames:
-            seconds_before = _seconds_at(kept, trainer.frames)
+            seconds_before = seconds_at(kept, trainer.frames)
             if seconds_before is None:
                 progress(
                     f"{metrics_path} has no training time at {trainer.frames:,} frames; it counts from now"

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from kgnavbench import agent, losses, models, runs, train, vecenv
+from kgnavbench import agent, intervals, losses, models, runs, train, vecenv
 from kgnavbench.cli import main
 from kgnavbench.graph import STOP
 from kgnavbench.kitchens import object_types
@@ -828,8 +828,8 @@ def test_best_is_the_checkpoint_with_the_highest_validation_sr_ties_to_the_later
     with open(tmp_path / "metrics.csv", newline="") as f:
         assert [r["val_episodes"] for r in csv.DictReader(f)] == ["100"] * 5
     # the one-standard-error reading, kept as a replay: 29 and 28.5 lie within 4.58 points of 30
-    assert train.standard_error(30.0, 100) == pytest.approx(4.583, abs=1e-3)
-    assert train.within_one_standard_error(28.5, 30.0, 100) and not train.within_one_standard_error(
+    assert intervals.standard_error(30.0, 100) == pytest.approx(4.583, abs=1e-3)
+    assert intervals.within_one_standard_error(28.5, 30.0, 100) and not intervals.within_one_standard_error(
         20, 30, 100
     )
 

@@ -11,7 +11,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import kgnavbench  # noqa: F401 - registers the Gymnasium ids
-from kgnavbench import vecenv
+from kgnavbench import gymenv, vecenv
 from kgnavbench.env import parallel_env
 from kgnavbench.graph import STOP
 
@@ -127,7 +127,7 @@ def test_single_env_plays_a_fixed_episode_to_success(floorplan1_tasks):
     success with the episode's shortest path and +10 at the end."""
     target = floorplan1_tasks.targets[0]
     start = target.starts[0]
-    env = vecenv.NavigationGymEnv("FloorPlan1", targets="all")
+    env = gymenv.NavigationGymEnv("FloorPlan1", targets="all")
     observation, info = env.reset(options={"target": target.object_id, "start": start})
     assert info["target"] == target.object_id
     dist = floorplan1_tasks.distances(target, "destination")
@@ -269,7 +269,7 @@ def test_the_envs_take_the_training_protocol_as_keywords(floorplan1_tasks):
         gym.make("kgnavbench/FloorPlan1-v0", nope=1)
     for bad in (0, -5, 2.7, True, "10"):
         with pytest.raises(vecenv.VecEnvError, match="max_steps must be a positive integer"):
-            vecenv.NavigationGymEnv("FloorPlan1", max_steps=bad)
+            gymenv.NavigationGymEnv("FloorPlan1", max_steps=bad)
         with pytest.raises(vecenv.VecEnvError, match="max_steps must be a positive integer"):
             env.reset(options={"target": env.unwrapped.space.target_ids[0], "start": 0, "max_steps": bad})
     with pytest.raises(vecenv.VecEnvError, match=r"unknown reset options \['episode'\]"):
@@ -279,9 +279,9 @@ def test_the_envs_take_the_training_protocol_as_keywords(floorplan1_tasks):
     with pytest.raises(vecenv.VecEnvError, match="autoreset_mode"):
         vecenv.NavigationVectorEnv(num_envs=2, kitchens="FloorPlan1", autoreset_mode="sometimes")
     with pytest.raises(vecenv.VecEnvError, match="stop_ends must be True or False"):
-        vecenv.NavigationGymEnv("FloorPlan1", stop_ends="no")
+        gymenv.NavigationGymEnv("FloorPlan1", stop_ends="no")
     with pytest.raises(vecenv.VecEnvError, match="step\\(\\) before reset"):
-        vecenv.NavigationGymEnv("FloorPlan1").step(0)
+        gymenv.NavigationGymEnv("FloorPlan1").step(0)
     with pytest.raises(vecenv.VecEnvError, match="step\\(\\) before reset"):
         vecenv.NavigationVectorEnv(num_envs=2, kitchens="FloorPlan1").step(np.zeros(2, np.int64))
 
@@ -290,8 +290,8 @@ def test_the_flat_box_observation_and_readable_bounds(floorplan1_tasks):
     """observation="box": one float32 vector, BOX_PARTS in order (features, view_objects,
     target_features, target_objects), the dict's numbers; the features' bounds are -inf..inf, so
     printing the space prints a line, not a thousand numbers."""
-    env = vecenv.NavigationGymEnv("FloorPlan1", observation="box")
-    plain = vecenv.NavigationGymEnv("FloorPlan1")
+    env = gymenv.NavigationGymEnv("FloorPlan1", observation="box")
+    plain = gymenv.NavigationGymEnv("FloorPlan1")
     box, _ = env.reset(seed=3)
     d, _ = plain.reset(seed=3)
     assert box.shape == (1274,) and box.dtype == np.float32 and env.observation_space.contains(box)
@@ -372,7 +372,7 @@ def test_vector_env_errors_name_the_problem(floorplan1_tasks):
     with pytest.raises(vecenv.VecEnvError, match="target set"):
         vecenv.NavigationVectorEnv(num_envs=2, kitchens="FloorPlan1", targets="unseen")
     with pytest.raises(vecenv.VecEnvError, match="FloorPlan21 has no seen targets .*targets='all'"):
-        vecenv.NavigationGymEnv("FloorPlan21", targets="seen")
+        gymenv.NavigationGymEnv("FloorPlan21", targets="seen")
     with pytest.raises(vecenv.VecEnvError, match="num_envs"):
         vecenv.NavigationVectorEnv(num_envs=0, kitchens="FloorPlan1")
     envs = vecenv.NavigationVectorEnv(num_envs=2, kitchens="FloorPlan1")

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from kgnavbench import runs
-from kgnavbench.train import BEST_RULE, within_one_standard_error
+from kgnavbench.intervals import within_one_standard_error
+from kgnavbench.train import BEST_RULE
 
 ZOO = Path(__file__).resolve().parents[1] / "zoo"
 SHIPPED = sorted(p for p in ZOO.iterdir() if p.is_dir() and not p.name.startswith("."))
