@@ -421,6 +421,13 @@ def checkpoints_arguments(sub) -> argparse.ArgumentParser:
     runs_option(p)
     p.add_argument("--episodes", type=positive, default=5, help="episodes per target (default 5)")
     p.add_argument("--row", action="append", metavar="NAME", help="only this row (repeatable)")
+    p.add_argument(
+        "--seed",
+        action="append",
+        type=seed,
+        metavar="S",
+        help="only this seed's runs (repeatable): two processes, two seeds, one CSV",
+    )
     p.add_argument("--csv", type=Path, help="default: tables/checkpoints-<preset>.csv")
     p.add_argument("--figure", type=Path, help="also draw validation against each column over frames")
     device_option(p)

@@ -85,9 +85,10 @@ def run_lines(
     episodes: int = EPISODES_PER_TARGET,
     device: str = "cpu",
     progress=print,
+    csv_path: Path | None = None,
 ) -> list[dict]:
     """One CSV line per snapshot of one finished run (evaluations are kept in runs_dir/eval and
-    resume, as every evaluation does)."""
+    resume, as every evaluation does); with `csv_path`, each line is merged into it as it comes."""
     preset = spec.preset(preset_name)
     options = row_options(preset, row)
     validation = validation_at(run_dir)
@@ -117,6 +118,17 @@ def run_lines(
         )
         progress(f"{row.name} seed {seed} {frames:,} frames: validation {val_sr:.1f}%, {shown}")
         lines.append(line)
+        if csv_path is not None:
+            merge_csv(csv_path, [line])
+    return lines
+
+
+def merge_csv(path: Path, new: list[dict]) -> list[dict]:
+    """`new` lines into the CSV at `path`, each replacing the line of its run and frames; read just
+    before the write, so that two processes evaluating other runs keep each other's lines."""
+    keys = {(line["run"], line["frames"]) for line in new}
+    lines = [line for line in read_csv(path) if (line["run"], line["frames"]) not in keys] + new
+    write_csv(path, lines)
     return lines
 
 
@@ -129,10 +141,11 @@ def evidence(
     rows: tuple[str, ...] = (),
     device: str = "cpu",
     progress=print,
+    seeds: tuple[int, ...] = (),
 ) -> list[dict]:
-    """Evaluate the snapshots of every finished run of the preset's learned rows (or of `rows`) found
-    in `runs_dir`, and merge their lines into `csv_path` run by run. A job with no finished run there,
-    or a run that kept no snapshot, is named and skipped."""
+    """Evaluate the snapshots of every finished run of the preset's learned rows (or of `rows`, and of
+    `seeds`) found in `runs_dir`, and merge their lines into `csv_path` snapshot by snapshot. A job with
+    no finished run there, or a run that kept no snapshot, is named and skipped."""
     # one thread: a snapshot's batches are a kitchen's ~170 episodes, too small to share, and beside a
     # training two threads spin against it (measured: 27 times slower per kitchen than one thread)
     torch.set_num_threads(1)
@@ -140,11 +153,13 @@ def evidence(
     unknown = sorted(set(rows) - {row.name for row in spec.rows})
     if unknown:
         raise TableError(f"no row named {', '.join(map(repr, unknown))} in {spec.path}")
-    lines = read_csv(csv_path)
+    read_csv(csv_path)  # a damaged CSV is refused before anything is evaluated
     for row in preset_rows(spec, preset):
         if (rows and row.name not in rows) or not trains(row):
             continue
         for seed in range(preset.seeds):
+            if seeds and seed not in seeds:
+                continue
             try:
                 run_dir = find_trained(
                     preset, row, seed, row_options(preset, row), runs_dir, device, lambda _line: None
@@ -155,10 +170,8 @@ def evidence(
             if not snapshot_frames(run_dir):
                 progress(f"skipped: {run_dir} kept no snapshot (trained without keep_every)")
                 continue
-            new = run_lines(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device, progress)
-            lines = [line for line in lines if line["run"] != run_dir.name] + new
-            write_csv(csv_path, lines)
-    return lines
+            run_lines(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device, progress, csv_path)
+    return read_csv(csv_path)
 
 
 def _cell(value) -> str:
