@@ -542,13 +542,13 @@ def format_summary(summary: dict[tuple[str, str], Metrics], title: str) -> str:
         "column",
         "kind",
         "episodes",
-        "SR",
-        "SPL",
-        "SR L>=5",
-        "SPL L>=5",
-        "collisions",
-        "last view",
-        "length",
+        "SR (%)",
+        "SPL (%)",
+        "SR L>=5 (%)",
+        "SPL L>=5 (%)",
+        "collisions/episode",
+        "last view (%)",
+        "length (steps)",
     ]
 
     def cell(value: float, digits: int = 2) -> str:
@@ -763,8 +763,9 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
     plugin_config = plugin.config(dict(config.options))
     if callable(getattr(plugin.module, "train", None)) and not config.run:
         raise EvalError(
-            f"{config.method} is a learned method: train it (`kgnavbench train --method {config.method}`), "
-            "then evaluate the run it prints with --run DIR"
+            f"{config.method} is a learned method: evaluate a trained run with --run DIR, one shipped in "
+            f"zoo/ (zoo/README.md lists them, e.g. --run zoo/{config.method}-<hash>) or one you train "
+            f"(`kgnavbench train --method {config.method}` prints its folder)"
         )
     if config.run:
         check_fixed_options(config, plugin_config)

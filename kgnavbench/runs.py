@@ -55,12 +55,10 @@ class TrainOptions:
     """Options every learned method shares (`--set key=value`). A plugin's Config extends this."""
 
     success_rule: str = "destination"  # the paper's: Stop at the destination; "visible": SAVN's
-    # Training episodes treat a wrong Stop as a no-op (evaluation ends the episode). Ending them from
-    # the start, stopping at once (-0.01) beats every walk that does not reach the destination, and a
-    # policy that has never succeeded learns just that (measured: SR 0 after 750k frames in
-    # FloorPlan1). `stop_ends_from=N` ends them from frame N on, a curriculum; measured in FloorPlan1
-    # with N = 1M, the training SR fell from 95% to under 1% within 750k frames of the switch. With
-    # start_curriculum (below) the agents succeed from the first updates, and N = 0 works.
+    # Training episodes treat a wrong Stop as a no-op (evaluation ends the episode): ending them from
+    # the start teaches a policy that never succeeded to Stop at once. `stop_ends_from=N` ends them
+    # from frame N on; with start_curriculum, N = 0 works (measurements: docs/training.md, "The
+    # options' defaults, measured")
     stop_ends_from: int | None = None
     # ... and costs this much more than a step (the paper's rewards otherwise): without it the agent
     # learns that a wrong Stop costs no more than a move, Stops often, and evaluation punishes that
@@ -72,8 +70,7 @@ class TrainOptions:
     # distance drawn uniformly from 0 to a reach that grows linearly to CURRICULUM_REACH actions; the
     # nearest start below it where none lies at it), then from the training starts as usual. Without
     # imitation the agents otherwise meet too few successes to learn from in a short run: a
-    # destination is one state of thousands (measured, 20 kitchens, 2M frames, lstm_a3c with
-    # stop_ends_from=0 and episode_cap=200: seen/seen SR 0 without, 8.6 / 7.6% with 1.0). 0 = off
+    # destination is one state of thousands (measured: docs/training.md). 0 = off
     start_curriculum: float = 0.0
     agents_per_kitchen: int = 64  # agents per training kitchen, all stepped at once
     # each agent keeps one training target (agent j of a kitchen: its target j mod the kitchen's
@@ -89,10 +86,8 @@ class TrainOptions:
     value_weight: float = 0.5  # alpha: weight of the value loss
     entropy: float = 0.01  # weight of the entropy bonus
     max_grad_norm: float = 10.0
-    # bfloat16 autocast (CPU). Off by default: on a CPU without native bf16 (no AVX512-BF16 or AMX;
-    # torch.ops.mkldnn._is_mkldnn_bf16_supported() is False on the 2-core development machine) autocast's
-    # bf16 products run in ATen's reference kernels (measured there, kg_attention il+tse, 140 agents,
-    # 2 threads, under load from another process: 421 frames/s with bf16, 4,878 without)
+    # bfloat16 autocast (CPU). Off by default: on a CPU without native bf16 (no AVX512-BF16 or AMX)
+    # autocast's bf16 products run in ATen's reference kernels, ten times slower (docs/training.md)
     bf16: bool = False
     hidden: int = 256  # siamese / fusion width
     lstm: int = 256
@@ -118,20 +113,17 @@ class TrainOptions:
     tse_unseen_targets: bool = False
     tse_window: int = 40  # steps before the sub-target that are relabelled
     tse_batch: int = 64  # sub-trajectories per update
-    # measured in FloorPlan1 (lstm_a3c il=true tse=true, 3M frames): at 1.0 the relabelled "Stop
-    # here, +10" episodes outweighed the rest and the agents learned to Stop anywhere (evaluation SR 0)
+    # at 1.0 the relabelled "Stop here, +10" episodes outweigh the rest and the agents learn to Stop
+    # anywhere (docs/training.md)
     tse_weight: float = 0.1
     # truncated importance weights min(1, pi/mu) on the relabelled steps. Without them every action of a
     # relabel (mostly ending in +10) is pushed up whatever the current policy thinks of it, and the
-    # policy collapses onto its own habits. Measured, 20 kitchens, 80 agents, 2M frames, seen/seen SR
-    # static / actionable without -> with: +TSE (with start_curriculum) 0.0 / 0.0 -> 9.9 / 6.8,
-    # +IL+TSE 21.0 / 17.8 -> 62.3 / 62.7, +KG+Attention 73.5 / 77.1 -> 43.2 / 31.4 (one seed each)
+    # policy collapses onto its own habits (docs/training.md)
     tse_importance: bool = True
     # a wrong Stop in a sub-target's window is an episode of the relabelled task too, one that failed:
     # "Stop here, short of the sub-target" (-0.01, no +10) trains beside the successful relabel. Without
     # these the relabels only ever reward Stop, and since training's wrong Stop is a no-op the agents
-    # learned to Stop everywhere (measured, 20 kitchens, 2M frames: lstm_a3c tse=true ended its
-    # evaluation episodes after ~6 actions, SR 0)
+    # learn to Stop everywhere (docs/training.md)
     tse_failures: bool = True
     # logs, checkpoints, validation
     log_every: int = 200_000  # frames between metrics rows (and checkpoints)
