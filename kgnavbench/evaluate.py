@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import store
 from .env import SUCCESS_RULES, parallel_env
 from .errors import KgnavbenchError
 from .files import (
@@ -44,7 +45,6 @@ from .files import (
     checksum_path,
     duration_text,
     first_line,
-    git_revision,
     sha256_file,
     write_with_checksum,
 )
@@ -188,8 +188,7 @@ class EvalConfig:
         """Deterministic: the method, the rules and a hash of everything that decides the results (the
         `identity` of `run_identity`: this config, the resolved plugin config, the plugin's source, the
         protocol and the task file)."""
-        text = json.dumps(identity if identity is not None else asdict(self), sort_keys=True, default=str)
-        digest = hashlib.sha256(text.encode()).hexdigest()[:8]
+        digest = store.digest(identity if identity is not None else asdict(self), 8)
         stop = "stop-ends" if self.stop_ends else "stop-noop"
         return f"{self.method}-{self.success_rule}-{stop}-{self.split}-{digest}"
 
@@ -709,27 +708,10 @@ def _write(path: Path, text: str, checksum: bool = False) -> None:
 
 
 def open_run(directory: Path, identity: dict, plugin: Plugin) -> None:
-    """Create the run directory with its config.json, or check that an existing one is this run's.
-    config.json is written once; a run directory that holds anything else is refused."""
-    config_path = directory / "config.json"
-    if config_path.exists():
-        try:
-            old = json.loads(config_path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise EvalError(
-                f"{config_path} is unreadable ({first_line(e)}); delete the run directory to start over"
-            ) from e
-        known = old.get("identity") if isinstance(old, dict) else None
-        if known != identity:
-            known = known if isinstance(known, dict) else {}  # any JSON at all: compare field by field
-            differ = sorted(k for k in identity if known.get(k) != identity[k])
-            raise EvalError(
-                f"{directory} holds an evaluation with another {', '.join(differ) or 'config'}; "
-                "refusing to mix results (delete it to start over)"
-            )
-        return
-    saved = {"identity": identity, "plugin_source": plugin.source, "git_revision": git_revision()}
-    _write(config_path, json.dumps(saved, indent=2) + "\n")
+    """Create the evaluation's directory with its config.json (the identity, the plugin's file, the git
+    revision), or check that an existing one holds this evaluation (`store.open_directory`)."""
+    recorded = {"plugin_source": plugin.source}
+    store.open_directory(directory, identity, EvalError, "an evaluation", under="identity", recorded=recorded)
 
 
 def check_fixed_options(config: EvalConfig, plugin_config) -> None:

@@ -22,16 +22,14 @@ from pathlib import Path
 
 import torch
 
-from . import claims, distributed
+from . import claims, distributed, store
 from .device import DeviceError, name_of, resolve
 from .env import SUCCESS_RULES, TRAINING_MAX_STEPS
 from .errors import KgnavbenchError
 from .files import (
-    atomic_write,
     checksum_matches,
     checksum_path,
     first_line,
-    git_revision,
     write_with_checksum,
 )
 from .kitchens import KITCHEN_NAMES, check_name
@@ -247,8 +245,7 @@ def run_record(
 
 
 def run_directory(runs_dir: Path | str, record: dict) -> Path:
-    digest = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:10]
-    return Path(runs_dir) / "train" / f"{record['method']}-{digest}"
+    return Path(runs_dir) / "train" / f"{record['method']}-{store.digest(record, 10)}"
 
 
 def train_method(
@@ -321,21 +318,7 @@ def _train_in(directory: Path, hook, config, record: dict, run: Run) -> Path:
     if (directory / "finished.json").exists():  # finished by the process that held the claim before us
         run.progress(f"{directory} is a finished run of {run.frames:,} frames; nothing to do")
         return directory
-    config_path = directory / "config.json"
-    if config_path.exists():
-        try:
-            old = json.loads(config_path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise TrainError(f"{config_path} is unreadable ({e}); delete {directory} to start over") from e
-        old_record = {k: v for k, v in old.items() if k != "git_revision"}
-        if old_record != record:
-            differ = sorted(k for k in set(record) | set(old_record) if record.get(k) != old_record.get(k))
-            raise TrainError(
-                f"{directory} holds a run with another config (differs in {', '.join(differ)}); "
-                "refusing to resume it: delete it or use another --runs folder"
-            )
-    else:
-        atomic_write(config_path, json.dumps({**record, "git_revision": git_revision()}, indent=2) + "\n")
+    store.open_directory(directory, record, TrainError, "a run")  # config.json: written once, then checked
     hook(config, run)
     return directory
 

@@ -22,11 +22,8 @@ import io
 import time
 from pathlib import Path
 
-from .evaluate import (
-    COLUMN_TITLES,
-    git_revision,
-)
-from .files import atomic_write, one_line
+from .evaluate import COLUMN_TITLES
+from .files import atomic_write, git_revision, one_line
 from .intervals import (
     REPLICATES,
     VERDICTS,

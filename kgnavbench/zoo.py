@@ -16,6 +16,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from . import store
 from .files import checksum_matches, first_line, one_line
 from .runs import (
     POLICY_KEYS,
@@ -114,20 +115,6 @@ class Shipped:
     best_frames: int  # best.pt's
 
 
-def _json_record(path: Path, keys: tuple[str, ...]) -> dict:
-    """A run's JSON file as an object holding `keys`, or a TableError naming the file."""
-    try:
-        record = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise TableError(f"{path.parent} has no {path.name}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise TableError(f"{path} is unreadable ({type(e).__name__}: {one_line(str(e))})") from e
-    missing = [key for key in keys if not isinstance(record, dict) or key not in record]
-    if missing:
-        raise TableError(f"{path} is not a run's {path.name}: no {', '.join(missing)}")
-    return record
-
-
 def _shipped_checkpoint(path: Path) -> dict:
     """The weights-only copy of a run's checkpoint (POLICY_KEYS), or a TableError naming the file."""
     if path.is_file() and checksum_matches(path, path.read_bytes()) is None:
@@ -162,8 +149,8 @@ def ship_run(run_dir: Path, zoo: Path, checkpoints: tuple[str, ...] = ("best",))
         raise TableError(f"{run_dir} is not a training run (no config.json)")
     if not (run_dir / "finished.json").is_file():
         raise TableError(f"{run_dir} is not finished (no finished.json); ship a run once it has finished")
-    config = _json_record(run_dir / "config.json", ("method", "seed"))
-    finished = _json_record(run_dir / "finished.json", ("frames",))
+    config = store.read_record(run_dir / "config.json", ("method", "seed"), TableError)
+    finished = store.read_record(run_dir / "finished.json", ("frames",), TableError)
     if config["method"] != run_dir.name.rsplit("-", 1)[0]:
         raise TableError(
             f"{run_dir}/config.json names the method {ascii(config['method'])}, not the folder's "

@@ -289,7 +289,7 @@ def test_another_config_in_the_same_run_directory_is_refused(tmp_path, floorplan
     saved["identity"]["config"]["seed"] = 0
     saved["identity"]["plugin_source_sha256"] = "0" * 64
     (run.directory / "config.json").write_text(json.dumps(saved))
-    with pytest.raises(EvalError, match="another plugin_source_sha256"):
+    with pytest.raises(EvalError, match="differs in plugin_source_sha256"):
         evaluate(config, tmp_path, progress=lambda line: None)
 
 
