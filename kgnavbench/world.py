@@ -24,7 +24,6 @@ from dataclasses import dataclass, replace
 
 import pymunk
 
-from .errors import KgnavbenchError
 from .kitchens import Kitchen, KitchenError, KitchenObject, load_kitchen
 
 ACTIONS = (
@@ -52,7 +51,7 @@ OBJECT, WALL, NAV, DOOR, AGENT = 1, 2, 4, 8, 16
 SOLID = OBJECT | WALL | DOOR  # what rays see
 
 
-class WorldError(KgnavbenchError, ValueError):
+class WorldError(ValueError):
     """Bad world input: unknown action, pose or object."""
 
 
