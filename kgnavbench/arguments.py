@@ -428,6 +428,11 @@ def checkpoints_arguments(sub) -> argparse.ArgumentParser:
         metavar="S",
         help="only this seed's runs (repeatable): two processes, two seeds, one CSV",
     )
+    p.add_argument(
+        "--unfinished",
+        action="store_true",
+        help="also evaluate the snapshots kept so far by runs still training (no line until they finish)",
+    )
     p.add_argument("--csv", type=Path, help="default: tables/checkpoints-<preset>.csv")
     p.add_argument("--figure", type=Path, help="also draw validation against each column over frames")
     device_option(p)

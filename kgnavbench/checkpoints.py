@@ -142,10 +142,14 @@ def evidence(
     device: str = "cpu",
     progress=print,
     seeds: tuple[int, ...] = (),
+    unfinished: bool = False,
 ) -> list[dict]:
     """Evaluate the snapshots of every finished run of the preset's learned rows (or of `rows`, and of
     `seeds`) found in `runs_dir`, and merge their lines into `csv_path` snapshot by snapshot. A job with
-    no finished run there, or a run that kept no snapshot, is named and skipped."""
+    no finished run there, or a run that kept no snapshot, is named and skipped. `unfinished`: also
+    evaluate the snapshots that runs still training have kept so far, writing no line for them (their
+    best.pt and last.pt are not final): once the run finishes, a call without it finds those
+    evaluations done and writes the lines."""
     # one thread: a snapshot's batches are a kitchen's ~170 episodes, too small to share, and beside a
     # training two threads spin against it (measured: 27 times slower per kitchen than one thread)
     torch.set_num_threads(1)
@@ -162,7 +166,14 @@ def evidence(
                 continue
             try:
                 run_dir = find_trained(
-                    preset, row, seed, row_options(preset, row), runs_dir, device, lambda _line: None
+                    preset,
+                    row,
+                    seed,
+                    row_options(preset, row),
+                    runs_dir,
+                    device,
+                    lambda _line: None,
+                    unfinished,
                 )
             except TableError as e:
                 progress(f"skipped: {e}")
@@ -170,7 +181,9 @@ def evidence(
             if not snapshot_frames(run_dir):
                 progress(f"skipped: {run_dir} kept no snapshot (trained without keep_every)")
                 continue
-            run_lines(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device, progress, csv_path)
+            finished = (run_dir / "finished.json").exists()
+            out = csv_path if finished else None  # an unfinished run's lines wait for its end
+            run_lines(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device, progress, out)
     return read_csv(csv_path)
 
 

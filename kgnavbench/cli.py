@@ -464,7 +464,7 @@ def cmd_checkpoints(args: argparse.Namespace) -> int:
     arguments.writable_folder(csv_path.parent, "--csv")
     lines = evidence(
         spec, args.preset, args.runs, csv_path, args.episodes, tuple(args.row or ()), device,
-        lambda line: print(line, flush=True), tuple(args.seed or ()),
+        lambda line: print(line, flush=True), tuple(args.seed or ()), args.unfinished,
     )  # fmt: skip
     print(f"wrote {csv_path}: {len(lines)} snapshots of {len({x['run'] for x in lines})} runs")
     if args.figure and lines:

@@ -127,10 +127,17 @@ def eval_kitchens(preset: Preset, row: Row) -> tuple[str, ...]:
 
 
 def find_trained(
-    preset: Preset, row: Row, seed: int, options: dict, folder: Path, device: str, progress=print
+    preset: Preset,
+    row: Row,
+    seed: int,
+    options: dict,
+    folder: Path,
+    device: str,
+    progress=print,
+    unfinished: bool = False,
 ) -> Path:
-    """The finished run in `folder` (a zoo, or a runs folder) that trained this row's job as the
-    preset says (`trained_run`), whatever code revision trained it."""
+    """The finished run in `folder` (a zoo, or a runs folder; `unfinished`: or the one still training)
+    that trained this row's job as the preset says (`trained_run`), whatever code revision trained it."""
     plugin = load_plugin(row.method)
     try:
         on = name_of(resolve(device))
@@ -139,7 +146,7 @@ def find_trained(
     record = run_record(
         plugin, plugin.config(options), preset.frames, seed, training_kitchens(preset.train_kitchens), on
     )
-    return trained_run(folder, record, row.name, progress)
+    return trained_run(folder, record, row.name, progress, unfinished)
 
 
 def eval_config(

@@ -47,10 +47,10 @@ ADDED_OPTIONS = {
 UNWEIGHTED_OPTIONS = ("keep_every",)
 
 
-def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Path:
+def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfinished: bool = False) -> Path:
     """The finished run in `folder` (its run folders, or those of its train/) whose config matches
-    `record` (`run_record`) on TRAINED_RUN_KEYS. Trained by other code than this checkout's, it is
-    used with a line that says from which revision."""
+    `record` (`run_record`) on TRAINED_RUN_KEYS (`unfinished`: or the run still training). Trained by
+    other code than this checkout's, it is used with a line that says from which revision."""
     want = {key: record[key] for key in TRAINED_RUN_KEYS}
     nearest: tuple[int, str] | None = None  # (keys that differ, which) of the closest run, for the error
     candidates = sorted(
@@ -82,7 +82,7 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print) -> Pa
                 nearest = (len(differ), f"{config_path.parent} differs in {', '.join(differ[:6])}")
             continue
         run_dir = config_path.parent
-        if not (run_dir / "finished.json").exists():
+        if not (run_dir / "finished.json").exists() and not unfinished:
             raise TableError(f"row {row_name!r} (seed {record['seed']}): {run_dir} is not finished")
         if config.get("training_code_sha256") != record["training_code_sha256"]:
             revision = one_line(str(config.get("git_revision", "?")))[:12]
