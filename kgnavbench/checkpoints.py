@@ -1,4 +1,4 @@
-"""Stage 26 — checkpoints: every kept snapshot of a table's runs, evaluated, as one CSV and a figure.
+"""Stage 27 — checkpoints: every kept snapshot of a table's runs, evaluated, as one CSV and a figure.
 
 A run of the paper presets keeps its weights every 2.5M frames (`keep_every`: RUN/snapshots/
 frames-N.pt) and measures its validation SR at each of them (metrics.csv). This stage evaluates every
@@ -25,10 +25,11 @@ import cv2
 import numpy as np
 import torch
 
-from .evaluate import COLUMNS, KINDS, evaluate
+from .evaluate import evaluate
 from .files import atomic_write
 from .intervals import standard_error
 from .jobs import eval_config, find_trained, preset_rows, row_options, trains
+from .metrics import COLUMNS, KINDS
 from .plots import FigureError, curves_image, write_png
 from .record import RecordError, read_metrics
 from .runs import load_checkpoint

@@ -1,4 +1,4 @@
-"""Stage 24 — record: rerun-sdk recordings of episodes and training runs, and the viewer.
+"""Stage 25 — record: rerun-sdk recordings of episodes and training runs, and the viewer.
 
 Episodes (`record_episodes`, a .rrd file), on two timelines: `step` counts actions over the whole
 recording (so scrubbing plays the episodes one after another) and `episode` numbers the episode
@@ -44,6 +44,7 @@ from . import evaluate
 from .env import parallel_env
 from .errors import KgnavbenchError
 from .graph import MOVES
+from .metrics import COLUMN_TITLES
 from .plugins import PluginError, guarded, load_plugin
 from .render import top_down_map
 from .tasks import load_task_file, load_tasks
@@ -381,7 +382,7 @@ def _record_episode(rec, plugin, policy, env, tasks, row: int, e: int, step: int
     header = (
         f"## Episode {e}: {tasks.kitchen}, {target.type}\n\n"
         f"* target `{target.object_id}` ({target.kind}, {'seen' if target.seen else 'unseen'}; "
-        f"column *{evaluate.COLUMN_TITLES[column]}*)\n"
+        f"column *{COLUMN_TITLES[column]}*)\n"
         f"* start state {start}, shortest path {infos[agent]['shortest_path']} actions, cap {cap}\n"
     )
     trail, bumps = [start], []

@@ -1,4 +1,4 @@
-"""Stage 23 — table: the paper's Table I from a table spec (`tables/table1.toml`), assembled and written.
+"""Stage 24 — table: the paper's Table I from a table spec (`tables/table1.toml`), assembled and written.
 
 The spec (kgnavbench/table_spec.py) names the protocol, the presets, the rows and the comparisons
 the paper draws between rows. `run_table` runs every row and seed (`jobs`): train unless a finished
@@ -22,7 +22,6 @@ import io
 import time
 from pathlib import Path
 
-from .evaluate import COLUMN_TITLES
 from .files import atomic_write, git_revision, one_line
 from .intervals import (
     REPLICATES,
@@ -41,6 +40,7 @@ from .jobs import (
     table_jobs,
     trains,
 )
+from .metrics import COLUMN_TITLES
 from .table_spec import (
     CELL_KEYS,
     CELL_TITLES,

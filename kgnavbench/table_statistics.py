@@ -1,4 +1,4 @@
-"""Stage 20 — table_statistics: a table's episodes, cells, intervals and verdicts.
+"""Stage 21 — table_statistics: a table's episodes, cells, intervals and verdicts.
 
 What Table I says is computed here, before anything is written: each job's episodes per cell
 (`cell_episodes`: "column/kind" -> one EpisodeValue per episode), a row's seeds together (`RowResult`),
@@ -15,10 +15,6 @@ import zlib
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from .evaluate import (
-    EpisodeResult,
-    spl_term,
-)
 from .intervals import (
     REPLICATES,
     Bootstrap,
@@ -27,6 +23,7 @@ from .intervals import (
     joint_stratified_bootstrap,
     verdict,
 )
+from .metrics import EpisodeResult, spl_term
 from .table_spec import (
     CELL_KEYS,
     METRICS,

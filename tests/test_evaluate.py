@@ -8,18 +8,14 @@ import math
 import pytest
 
 from kgnavbench.evaluate import (
-    EpisodeResult,
     EvalConfig,
     EvalError,
     column_of,
     episode_cap,
     evaluate,
-    format_summary,
     kitchens_of_split,
-    metrics,
-    spl_term,
-    summarize,
 )
+from kgnavbench.metrics import EpisodeResult, format_summary, metrics, spl_term, summarize
 from kgnavbench.tasks import load_task_file
 
 

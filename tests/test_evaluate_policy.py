@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import kgnavbench
-from kgnavbench.evaluate import EvalConfig, evaluate, summary_as_json
+from kgnavbench.evaluate import EvalConfig, evaluate
 from kgnavbench.graph import STOP
+from kgnavbench.metrics import summary_as_json
 
 TURNER = """
 DESCRIPTION = "turns right, then stops on its fourth step"

@@ -19,8 +19,8 @@ import pytest
 
 from kgnavbench import runs
 from kgnavbench.cli import main
-from kgnavbench.evaluate import EpisodeResult
 from kgnavbench.jobs import table_jobs, time_left
+from kgnavbench.metrics import EpisodeResult
 from kgnavbench.table import caption, to_ablation_csv, to_csv, to_latex, to_markdown, write_table
 from kgnavbench.table_spec import (
     CELL_KEYS,
