@@ -497,9 +497,13 @@ def run_jobs_on_ray(
     def title(n: int) -> str:
         return jobs[n].title(n + 1, len(jobs))
 
+    def attempts_file(n: int) -> Path:
+        return (attempts_dir / f"job-{n + 1:03d}").resolve()
+
     def status(parallel: int) -> str:
-        started = [n for n in range(len(jobs)) if _attempts(attempts_dir / f"job-{n + 1:03d}")]
-        retried = [n for n in started if _attempts(attempts_dir / f"job-{n + 1:03d}") > 1]
+        counts = [_attempts(attempts_file(n)) for n in range(len(jobs))]  # each file read once
+        started = [n for n, count in enumerate(counts) if count]
+        retried = [n for n, count in enumerate(counts) if count > 1]
         ended = {n for n, o in enumerate(outcomes) if o is not None} | set(failed)
         running = [n for n in started if n not in ended]
         left = time_left(done, [k for n, k in enumerate(kinds) if n not in ended])
@@ -516,7 +520,7 @@ def run_jobs_on_ray(
         for n, job in enumerate(jobs):
             job = dataclasses.replace(job, threads=job.threads or 1)
             options = dict(num_cpus=job.threads, max_retries=RAY_RETRIES, retry_exceptions=False)
-            attempts = str((attempts_dir / f"job-{n + 1:03d}").resolve())
+            attempts = str(attempts_file(n))
             remote = task.options(name=title(n), **options)
             refs[remote.remote(job, title(n), attempts, os.getcwd())] = n
         parallel = max(1, cpus // max(job.threads or 1 for job in jobs))
