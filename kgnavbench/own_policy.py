@@ -21,6 +21,7 @@ from .evaluate import (
     summarize,
     summary_as_json,
 )
+from . import plugins
 from .plugins import PluginError
 from .world import ACTIONS
 
@@ -37,25 +38,28 @@ class _GivenPlugin:
     source: str = "evaluate_policy(policy)"
     privileged: bool = False
 
+    state_axis: int = 1
+
     def make_policy(self, config, spec):
-        return _BatchedPolicy(self.policy, self.deterministic, self.box)
+        return _BatchedPolicy(self.policy, self.deterministic, self.box, self.state_axis)
 
 
 class _BatchedPolicy:
     """A callable on batched observations, or an object with Stable-Baselines3's predict, as a batched
     evaluation policy. The observations are a dict of arrays with a leading agent axis, keyed as the
     Gymnasium vector env's (`features`, `target_features`, `view_objects`, `target_objects`). For
-    `predict`, `episode_start` is True on each agent's first step, and a recurrent state (a tuple of
-    arrays, SB3's) is kept per agent: its agent axis is the one as long as the batch (axis 1 of
-    sb3-contrib's (layers, agents, units) LSTM states)."""
+    `predict`, `episode_start` is True on each agent's first step, and a recurrent state (an array or
+    a tuple of arrays, SB3's) is kept per agent along its declared agent axis `state_axis` (1:
+    sb3-contrib's (layers, agents, units) LSTM states) and handed back in the form it came in."""
 
-    def __init__(self, policy, deterministic: bool, box: bool = False):
+    def __init__(self, policy, deterministic: bool, box: bool = False, state_axis: int = 1):
         self.policy, self.deterministic, self.box = policy, deterministic, box
+        self.state_axis = state_axis
+        self.bare = False  # the policy's state is one array, not a tuple
         self.predict = getattr(policy, "predict", None)
         if not callable(self.predict) and not callable(policy):
             raise EvalError("evaluate_policy needs a callable on observations or an object with predict()")
         self.state: dict[str, tuple] = {}  # agent -> its recurrent state (one row per array)
-        self.axes: tuple[int, ...] = ()  # each state array's agent axis
         self.fresh: set[str] = set()
 
     def reset(self, agent: str) -> None:
@@ -78,15 +82,23 @@ class _BatchedPolicy:
         rows = [self.state.get(a) for a in agents]
         state = None
         if rows and all(r is not None for r in rows):  # every agent's state, stacked back on its axis
-            state = tuple(np.stack([r[i] for r in rows], axis=axis) for i, axis in enumerate(self.axes))
-        actions, state = self.predict(
-            batch, state=state, episode_start=starts, deterministic=self.deterministic
-        )
+            axis = self.state_axis
+            state = tuple(np.stack([r[i] for r in rows], axis=axis) for i in range(len(rows[0])))
+            state = state[0] if self.bare else state
+        answer = self.predict(batch, state=state, episode_start=starts, deterministic=self.deterministic)
+        if not isinstance(answer, tuple) or len(answer) != 2:
+            raise EvalError(
+                f"the policy's predict() returned {type(answer).__name__}; it returns (actions, state), "
+                "as Stable-Baselines3's does"
+            )
+        actions, state = answer
         if state is not None:
-            arrays = tuple(np.asarray(s) for s in state)
-            self.axes = tuple(_batch_axis(s, len(agents)) for s in arrays)
+            self.bare = isinstance(state, np.ndarray)
+            arrays = (state,) if self.bare else tuple(np.asarray(s) for s in state)
+            for array in arrays:
+                _check_state_axis(array, self.state_axis, len(agents))
             for j, agent in enumerate(agents):
-                self.state[agent] = tuple(np.take(s, j, axis=axis) for s, axis in zip(arrays, self.axes))
+                self.state[agent] = tuple(np.take(s, j, axis=self.state_axis) for s in arrays)
         return checked_actions(actions, len(agents))
 
 
@@ -109,15 +121,14 @@ def checked_actions(actions, n: int) -> np.ndarray:
     return a
 
 
-def _batch_axis(array: np.ndarray, n: int) -> int:
-    """The agent axis of a recurrent state array: axis 1 where it is as long as the batch (sb3-contrib's
-    (layers, agents, units)), else the first one that is."""
-    if array.ndim >= 2 and array.shape[1] == n:
-        return 1
-    for axis, size in enumerate(array.shape):
-        if size == n:
-            return axis
-    raise EvalError(f"a recurrent state of shape {array.shape} has no axis for the {n} agents")
+def _check_state_axis(array: np.ndarray, axis: int, n: int) -> None:
+    """The recurrent state's agent axis is declared (evaluate_policy's state_axis), never guessed: an
+    array without n rows on it is an error, since slicing another axis would mix agents' states."""
+    if array.ndim <= axis or array.shape[axis] != n:
+        raise EvalError(
+            f"the policy's recurrent state has shape {array.shape}, not {n} agents on axis {axis}; "
+            f"pass evaluate_policy(..., state_axis=N) with the axis that holds one row per agent"
+        )
 
 
 def evaluate_policy(
@@ -132,6 +143,8 @@ def evaluate_policy(
     observation: str = "dict",
     targets: str = "all",
     progress=None,
+    timeout: float | None = None,
+    state_axis: int = 1,
 ) -> dict:
     """Table I's fixed episodes for your own policy, no plugin file: the same episodes, caps and rules
     as `kgnavbench eval`, and the same summary as `eval --json` ({"summary": {"column/kind": metrics}},
@@ -144,8 +157,12 @@ def evaluate_policy(
     agent through `episode_start`). observation="box": the policy gets the Gymnasium envs' flat Box
     instead, one float32 row of 1274 per agent (`vecenv.BOX_PARTS`), as a model trained on
     observation="box" expects. targets="seen": only the seen targets of training kitchens (Table I's
-    seen/seen cells), "all" (default): every target. Nothing is written to disk; results are not
-    cached."""
+    seen/seen cells), "all" (default): every target. `timeout`: seconds one call of the policy may
+    take before the evaluation ends with an EvalError naming the kitchen and step (as eval's
+    --step-timeout; a policy that defeats it ends the process with that line); None (default): no
+    limit, and a line on stderr every minute naming where it waits. `state_axis`: the agent axis of
+    a recurrent state's arrays (1: sb3-contrib's (layers, agents, units)). Nothing is written to disk;
+    results are not cached."""
     if observation not in ("dict", "box"):
         raise EvalError(f"unknown observation {observation!r}; choose 'dict' or 'box'")
     for name, value in (("episodes", episodes), ("seed", seed)):
@@ -164,6 +181,12 @@ def evaluate_policy(
         raise EvalError(f"evaluate_policy's deterministic must be true or false, got {ascii(deterministic)}")
     if targets not in ("all", "seen"):
         raise EvalError(f"unknown targets {targets!r}; choose 'all' or 'seen'")
+    if timeout is not None and (
+        isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not 0 < timeout < 1e6
+    ):
+        raise EvalError(f"evaluate_policy's timeout must be seconds in (0, 1e6) or None, got {ascii(timeout)}")
+    if isinstance(state_axis, bool) or not isinstance(state_axis, int) or not 0 <= state_axis <= 8:
+        raise EvalError(f"evaluate_policy's state_axis must be an axis 0..8, got {ascii(state_axis)}")
     config = EvalConfig(
         method="evaluate_policy",
         success_rule=success_rule,
@@ -172,15 +195,19 @@ def evaluate_policy(
         episodes_per_target=episodes,
         seed=seed,
     )
-    plugin = _GivenPlugin(policy, deterministic, observation == "box")
+    plugin = _GivenPlugin(policy, deterministic, observation == "box", state_axis=state_axis)
     results = []
-    for kitchen in config.kitchen_list():
-        t0 = time.perf_counter()
-        try:
-            done = evaluate_kitchen(plugin, None, config, kitchen, seen_only=targets == "seen")
-        except PluginError as e:  # the caller's policy, not a plugin file: the package's EvalError
-            raise EvalError(str(e)) from e
-        results += done
-        if progress:
-            progress(f"{kitchen}: {len(done)} episodes in {time.perf_counter() - t0:.1f} s")
+    limit_before, plugins.step_timeout = plugins.step_timeout, timeout
+    try:
+        for kitchen in config.kitchen_list():
+            t0 = time.perf_counter()
+            try:
+                done = evaluate_kitchen(plugin, None, config, kitchen, seen_only=targets == "seen")
+            except PluginError as e:  # the caller's policy, not a plugin file: the package's EvalError
+                raise EvalError(str(e)) from e
+            results += done
+            if progress:
+                progress(f"{kitchen}: {len(done)} episodes in {time.perf_counter() - t0:.1f} s")
+    finally:
+        plugins.step_timeout = limit_before
     return {"summary": summary_as_json(summarize(results)), "episodes": len(results)}

@@ -42,6 +42,7 @@ import dataclasses
 import importlib
 import importlib.util
 import math
+import os
 import signal
 import sys
 import threading
@@ -144,28 +145,63 @@ class PluginTimeout(PluginError):
 def watched(source: str, what: str, where: str = "", limit: float | None = None, note: float | None = None):
     """While the block runs (plugin code), say every `note` seconds on stderr that kgnavbench is still
     waiting for `what` of `source` (and `where`: the kitchen and step); past `limit` seconds, raise
-    PluginTimeout there: a plugin that never returns ends with one line, not a silent hang."""
+    PluginTimeout there: a plugin that never returns ends with one line, not a silent hang.
+
+    The limit holds against plugin code that defeats the signal: a time-out the plugin caught is raised
+    again when the block returns, and a watchdog thread ends the process (exit 2, one line on stderr)
+    if the block is still running WATCHDOG_GRACE seconds past the limit (the plugin caught the time-out
+    and went on, or ignored SIGALRM). A caller's own SIGALRM handler and ITIMER_REAL timer are restored
+    afterwards, the timer less the time the block took."""
     if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "setitimer"):
         yield
         return
     start = time.monotonic()
     place = f" ({where})" if where else ""
     note = WAIT_NOTE if note is None else note
+    message = f"{source}: {what} did not return within {limit:g} s{place}" if limit is not None else ""
+    timed_out = []
 
     def alarm(signum, frame):
         waited = time.monotonic() - start
         if limit is not None and waited >= limit:
-            raise PluginTimeout(f"{source}: {what} did not return within {limit:g} s{place}")
+            timed_out.append(waited)
+            raise PluginTimeout(message)
         print(f"kgnavbench: still waiting for {what} of {source}{place}: {waited:.0f} s", file=sys.stderr)
         signal.setitimer(signal.ITIMER_REAL, _next_alarm(waited, limit, note))
 
     previous = signal.signal(signal.SIGALRM, alarm)
-    signal.setitimer(signal.ITIMER_REAL, _next_alarm(0.0, limit, note))
+    callers_timer = signal.setitimer(signal.ITIMER_REAL, _next_alarm(0.0, limit, note))
+    returned = threading.Event()
+    if limit is not None:
+        watchdog = threading.Thread(
+            target=_watchdog, args=(returned, limit + WATCHDOG_GRACE, message), daemon=True
+        )
+        watchdog.start()
     try:
         yield
+        if timed_out:  # the plugin caught the PluginTimeout and returned anyway
+            raise PluginTimeout(message)
     finally:
+        returned.set()
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
+        remaining, interval = callers_timer
+        if remaining > 0:  # the caller's timer runs on, less the time the block took (at least 1 ms)
+            signal.setitimer(signal.ITIMER_REAL, max(1e-3, remaining - (time.monotonic() - start)), interval)
+
+
+WATCHDOG_GRACE = 5.0  # seconds past a step's limit before the process is ended (the signal did not work)
+
+
+def _watchdog(returned: threading.Event, seconds: float, message: str) -> None:
+    """End the process if the watched block has not returned within `seconds`: its plugin code
+    defeated the time-out (caught PluginTimeout and went on, or ignored SIGALRM). Nothing else can stop
+    Python code running in the main thread."""
+    if returned.wait(seconds):
+        return
+    print(f"kgnavbench: error: {message}, and it defeated the time-out (caught it or ignored SIGALRM): "
+          "the process ends here", file=sys.stderr, flush=True)
+    os._exit(2)
 
 
 def _next_alarm(waited: float, limit: float | None, note: float) -> float:

@@ -553,3 +553,75 @@ def test_every_error_class_of_the_package_has_the_one_base_that_main_catches():
     # world.py's bytes fingerprint every state graph (errors.py says why), and main catches it beside
     outside.remove("world.WorldError")
     assert not outside, f"error classes without the base: {outside}"
+
+
+def test_a_time_out_the_plugin_catches_is_raised_again_when_it_returns():
+    """Plugin code that catches the PluginTimeout and returns does not get its step through."""
+    import time
+
+    from kgnavbench import plugins
+
+    def swallows_the_time_out():
+        try:
+            time.sleep(5)
+        except BaseException:  # noqa: BLE001 - what a careless plugin does
+            pass
+        return {}
+
+    with pytest.raises(plugins.PluginTimeout, match="act\\(\\) did not return within 0.2 s"):
+        with plugins.watched("careless.py", "act()", limit=0.2):
+            swallows_the_time_out()
+
+
+@pytest.mark.parametrize(
+    "defeat",
+    [
+        "signal.signal(signal.SIGALRM, signal.SIG_IGN); time.sleep(30)",
+        "\n".join(["while True:", "    try:", "        time.sleep(30)", "    except BaseException:", "        pass"]),
+    ],
+    ids=["ignores_sigalrm", "catches_every_time_out"],
+)
+def test_a_plugin_that_defeats_the_time_out_ends_the_process_with_one_line(defeat, tmp_path):
+    """A step that neither returns nor lets the time-out through is ended by the watchdog: exit 2, one
+    line naming the plugin and the step, within the limit and its grace."""
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "defeat.py"
+    script.write_text(
+        "import signal, time\nfrom kgnavbench import plugins\nplugins.WATCHDOG_GRACE = 0.5\n"
+        "with plugins.watched('defiant.py', 'act()', 'FloorPlan1, step 1', limit=0.3):\n"
+        + textwrap.indent(defeat, "    ")
+        + "\nprint('went on')\n"
+    )
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert "went on" not in done.stdout
+    assert_one_line_error(2, done.stderr, "defiant.py", "act() did not return within 0.3 s", "FloorPlan1, step 1")
+    assert time.monotonic() - t0 < 20
+
+
+def test_watching_plugin_code_restores_the_callers_timer_and_handler():
+    """A caller's own ITIMER_REAL timer and SIGALRM handler survive a watched call (evaluate_policy's
+    callers may have one)."""
+    import signal
+    import time
+
+    from kgnavbench import plugins
+
+    def mine(signum, frame):
+        pass
+
+    before = signal.signal(signal.SIGALRM, mine)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 30.0, 7.0)
+        with plugins.watched("a.py", "act()", limit=5.0):
+            time.sleep(0.2)
+        remaining, interval = signal.getitimer(signal.ITIMER_REAL)
+        assert signal.getsignal(signal.SIGALRM) is mine
+        assert 29.0 < remaining < 29.9 and interval == 7.0
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, before)

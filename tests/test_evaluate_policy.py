@@ -118,6 +118,11 @@ def test_the_examples_run_and_end_in_a_json_summary(example, hermetic_cache):
         ({"episodes": "2"}, "episodes must be a whole number, got '2'"),
         ({"progress": 3}, "progress must be callable"),
         ({"deterministic": "yes"}, "deterministic must be true or false"),
+        ({"timeout": 0}, "timeout must be seconds"),
+        ({"timeout": float("nan")}, "timeout must be seconds"),
+        ({"timeout": "5"}, "timeout must be seconds"),
+        ({"state_axis": -1}, "state_axis must be an axis"),
+        ({"state_axis": 1.0}, "state_axis must be an axis"),
     ],
 )
 def test_evaluate_policy_refuses_arguments_the_cli_would(keywords, named):
@@ -140,3 +145,48 @@ def test_evaluate_policy_refuses_actions_that_are_not_integers_0_to_9(actions, n
         kgnavbench.evaluate_policy(
             lambda obs: actions(len(obs["features"])), kitchens=["FloorPlan1"], episodes=1
         )
+
+
+class RowsPerAgent:
+    """A predict() whose recurrent state is one bare array of shape (agents, units), agents on axis 0,
+    as wide as the first batch (FloorPlan1's 34 agents at episodes=1): column 0 counts steps, column 1 is the agent's own
+    episode length (2, 3 or 4), so agents finish at different steps and the batch shrinks. A state
+    sliced on the wrong axis would give other agents' lengths."""
+
+    def __init__(self, units: int | None = None):
+        self.units = units
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+        n = len(observation["features"])
+        if state is None:
+            self.units = self.units or n
+            state = np.zeros((n, self.units), np.int64)
+            state[:, 1] = np.arange(n) % 3 + 2
+        assert isinstance(state, np.ndarray) and state.shape == (n, self.units)  # bare comes back bare
+        assert len(set(state[:, 0])) == 1  # the agents still walking started together
+        state = state.copy()
+        state[:, 0] += 1
+        return np.where(state[:, 0] >= state[:, 1], STOP, 4), state
+
+
+def test_a_recurrent_state_is_kept_on_its_declared_agent_axis(floorplan1_tasks):
+    got = kgnavbench.evaluate_policy(RowsPerAgent(), kitchens=["FloorPlan1"], episodes=1, state_axis=0)
+    assert got["episodes"] == 34
+    assert got["summary"]["all/all"]["episode_length"] == pytest.approx(np.mean(np.arange(34) % 3 + 2))
+    with pytest.raises(kgnavbench.EvalError, match=r"shape \(34, 5\), not 34 agents on axis 1; pass"):
+        kgnavbench.evaluate_policy(RowsPerAgent(units=5), kitchens=["FloorPlan1"], episodes=1)
+
+
+def test_a_policy_call_past_the_timeout_ends_the_evaluation_with_where_it_waited(floorplan1_tasks):
+    import signal
+    import time
+
+    def sleeper(observations):
+        time.sleep(30)
+
+    signal.setitimer(signal.ITIMER_REAL, 0)
+    with pytest.raises(kgnavbench.EvalError, match=r"did not return within 0.5 s \(FloorPlan1, step 1\)"):
+        kgnavbench.evaluate_policy(sleeper, kitchens=["FloorPlan1"], episodes=1, timeout=0.5)
+    from kgnavbench import plugins
+
+    assert plugins.step_timeout is None  # the limit was the call's own
