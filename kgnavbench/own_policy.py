@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import plugins
 from .evaluate import (
     EPISODES_PER_TARGET,
     EvalConfig,
@@ -21,7 +22,6 @@ from .evaluate import (
     summarize,
     summary_as_json,
 )
-from . import plugins
 from .plugins import PluginError
 from .world import ACTIONS
 
@@ -184,7 +184,9 @@ def evaluate_policy(
     if timeout is not None and (
         isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not 0 < timeout < 1e6
     ):
-        raise EvalError(f"evaluate_policy's timeout must be seconds in (0, 1e6) or None, got {ascii(timeout)}")
+        raise EvalError(
+            f"evaluate_policy's timeout must be seconds in (0, 1e6) or None, got {ascii(timeout)}"
+        )
     if isinstance(state_axis, bool) or not isinstance(state_axis, int) or not 0 <= state_axis <= 8:
         raise EvalError(f"evaluate_policy's state_axis must be an axis 0..8, got {ascii(state_axis)}")
     config = EvalConfig(

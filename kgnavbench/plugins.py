@@ -199,8 +199,12 @@ def _watchdog(returned: threading.Event, seconds: float, message: str) -> None:
     Python code running in the main thread."""
     if returned.wait(seconds):
         return
-    print(f"kgnavbench: error: {message}, and it defeated the time-out (caught it or ignored SIGALRM): "
-          "the process ends here", file=sys.stderr, flush=True)
+    print(
+        f"kgnavbench: error: {message}, and it defeated the time-out (caught it or ignored SIGALRM): "
+        "the process ends here",
+        file=sys.stderr,
+        flush=True,
+    )
     os._exit(2)
 
 

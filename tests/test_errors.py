@@ -562,22 +562,24 @@ def test_a_time_out_the_plugin_catches_is_raised_again_when_it_returns():
     from kgnavbench import plugins
 
     def swallows_the_time_out():
-        try:
+        try:  # noqa: SIM105 - what a careless plugin does
             time.sleep(5)
-        except BaseException:  # noqa: BLE001 - what a careless plugin does
+        except BaseException:  # noqa: BLE001
             pass
         return {}
 
-    with pytest.raises(plugins.PluginTimeout, match="act\\(\\) did not return within 0.2 s"):
-        with plugins.watched("careless.py", "act()", limit=0.2):
-            swallows_the_time_out()
+    timed_out = pytest.raises(plugins.PluginTimeout, match="act\\(\\) did not return within 0.2 s")
+    with timed_out, plugins.watched("careless.py", "act()", limit=0.2):
+        swallows_the_time_out()
 
 
 @pytest.mark.parametrize(
     "defeat",
     [
         "signal.signal(signal.SIGALRM, signal.SIG_IGN); time.sleep(30)",
-        "\n".join(["while True:", "    try:", "        time.sleep(30)", "    except BaseException:", "        pass"]),
+        "\n".join(
+            ["while True:", "    try:", "        time.sleep(30)", "    except BaseException:", "        pass"]
+        ),
     ],
     ids=["ignores_sigalrm", "catches_every_time_out"],
 )
@@ -599,7 +601,9 @@ def test_a_plugin_that_defeats_the_time_out_ends_the_process_with_one_line(defea
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2, done.stderr
     assert "went on" not in done.stdout
-    assert_one_line_error(2, done.stderr, "defiant.py", "act() did not return within 0.3 s", "FloorPlan1, step 1")
+    assert_one_line_error(
+        2, done.stderr, "defiant.py", "act() did not return within 0.3 s", "FloorPlan1, step 1"
+    )
     assert time.monotonic() - t0 < 20
 
 
