@@ -150,8 +150,8 @@ def test_evaluate_policy_refuses_actions_that_are_not_integers_0_to_9(actions, n
 class RowsPerAgent:
     """A predict() whose recurrent state is one bare array of shape (agents, units), agents on axis 0,
     as wide as the first batch (FloorPlan1's 34 agents at episodes=1): column 0 counts steps, column 1
-    is the agent's own episode length (2, 3 or 4), so agents finish at different steps and the batch shrinks. A state
-    sliced on the wrong axis would give other agents' lengths."""
+    is the agent's own episode length (2, 3 or 4), so agents finish at different steps and the batch
+    shrinks. A state sliced on the wrong axis would give other agents' lengths."""
 
     def __init__(self, units: int | None = None):
         self.units = units
