@@ -167,6 +167,16 @@ def standardize(features, stats: dict) -> Tensor:
 _stats_cache: dict[str, dict] = {}
 
 
+def _one_torch_thread_after_fork() -> None:
+    """In a forked child, torch's OpenMP thread pool is gone, and the first multi-threaded op waits on
+    it forever (gymnasium's AsyncVectorEnv forks its workers, which then build the env: measured, a
+    hang in `standardize`). One thread runs torch's ops inline; a child that wants more sets it."""
+    torch.set_num_threads(1)
+
+
+os.register_at_fork(after_in_child=_one_torch_thread_after_fork)
+
+
 def encoder_feature_stats(path: Path | str = ENCODER_FILE) -> dict:
     """The committed encoder's feature statistics {"mean", "std"} (512,) float32."""
     key = encoder_hash(path)

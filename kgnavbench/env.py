@@ -76,6 +76,10 @@ ARRIVAL_REWARD = 0.01
 SUCCESS_REWARD = 10.0
 TRAINING_MAX_STEPS = 5000
 TARGET_SETS = ("seen", "unseen", "all")
+# upper bounds that name the limit rather than fill the memory: the protocol's largest kitchen has
+# fewer than 6,000 fixed episodes (one agent each), and no episode of it is longer than 5000 actions
+MAX_AGENTS = 100_000
+MAX_EPISODE_STEPS = 1_000_000
 OBSERVATION_FORMATS = ("dict", "box")
 IS_MOVE = np.isin(np.arange(len(ACTIONS)), MOVES)  # per action: a move (a failed one is a collision)
 
@@ -174,6 +178,13 @@ class BatchObservations(Mapping):
         return len(self._keys)
 
 
+def checked_seed(seed, error: type[Exception]) -> int:
+    """A reset's seed: a whole number >= 0 (numpy's and Gymnasium's rule), else `error` naming it."""
+    if not _is_integer(seed) or seed < 0:
+        raise error(f"seed must be a whole number >= 0 or None, not {seed!r}")
+    return int(seed)
+
+
 def _is_integer(value) -> bool:
     """An int or a NumPy integer (also 0-d arrays of one, as gymnasium's Discrete.sample gives); not a
     bool, not a float."""
@@ -207,10 +218,10 @@ class NavigationEnv(ParallelEnv):
             raise EnvError(f"unknown success_rule {success_rule!r}; choose one of {SUCCESS_RULES}")
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise EnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
-        if not _is_integer(n_agents) or n_agents < 1:
-            raise EnvError(f"n_agents must be a positive integer, not {n_agents!r}")
-        if not _is_integer(max_steps) or max_steps < 1:
-            raise EnvError(f"max_steps must be a positive integer, not {max_steps!r}")
+        if not _is_integer(n_agents) or not 1 <= n_agents <= MAX_AGENTS:
+            raise EnvError(f"n_agents must be a whole number in 1..{MAX_AGENTS:,}, not {n_agents!r}")
+        if not _is_integer(max_steps) or not 1 <= max_steps <= MAX_EPISODE_STEPS:
+            raise EnvError(f"max_steps must be a whole number in 1..{MAX_EPISODE_STEPS:,}, not {max_steps!r}")
         n_agents, max_steps = int(n_agents), int(max_steps)
         self.tasks = tasks if tasks is not None else load_tasks(kitchen, view_size)
         self.kitchen = self.tasks.kitchen
@@ -344,7 +355,7 @@ class NavigationEnv(ParallelEnv):
     # -- the episode -----------------------------------------------------------------------------
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None:
-            self.np_random, _ = seeding.np_random(seed)
+            self.np_random, _ = seeding.np_random(checked_seed(seed, EnvError))
         if options is not None and not isinstance(options, Mapping):
             raise EnvError(f"options must be a dict, not {type(options).__name__}")
         unknown = sorted(str(k) for k in (options or {}) if k != "episodes")

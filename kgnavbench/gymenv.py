@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import Env, spaces
 
-from .env import TRAINING_MAX_STEPS, _is_integer
+from .env import TRAINING_MAX_STEPS, _is_integer, checked_seed
 from .vecenv import RENDER_FPS, Navigation, VecEnvError, observation_space, positive_int
 from .world import ACTIONS
 
@@ -52,6 +52,11 @@ class NavigationGymEnv(Navigation, Env):
         self._reset_once = False
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """A new episode (options: GYM_RESET_OPTIONS). A seed starts the env over, its curriculum too:
+        the same seed gives the same episodes (what gymnasium's check_env asks)."""
+        if seed is not None:
+            seed = checked_seed(seed, VecEnvError)
+            self.curriculum_done = 0
         super().reset(seed=seed)
         if options is not None and not isinstance(options, dict):
             raise VecEnvError(f"options must be a dict, not {type(options).__name__}")

@@ -23,7 +23,8 @@ Keywords (both faces, also through gym.make / gym.make_vec / SB3's make_vec_env)
     counted in frames: every sub-env's step counts; starts at most `reach` actions from the
     destination, reach growing from 0 to 25, then the training starts), observation ("dict" or "box"),
     views, render_mode ("rgb_array"); the vector env also num_envs and autoreset_mode. An unknown
-    keyword is Python's TypeError; an unknown reset option or a bad value is a VecEnvError.
+    keyword is Python's TypeError; an unknown reset option or a bad value is a VecEnvError. A seeded
+    reset (a whole number >= 0) starts the env over, its curriculum too: one seed, the same episodes.
 Observations (fresh, writable arrays on every call; the vector env's have a leading num_envs axis):
     observation="dict" (default):
     "features"        float32 (512,)  the frozen encoder's features of the current view, standardized
@@ -82,7 +83,14 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .encoder import FEATURE_DIM, N_TYPES, encoder_feature_stats, standardize, state_features
-from .env import SUCCESS_RULES, TRAINING_MAX_STEPS, _is_integer, transition
+from .env import (
+    MAX_EPISODE_STEPS,
+    SUCCESS_RULES,
+    TRAINING_MAX_STEPS,
+    _is_integer,
+    checked_seed,
+    transition,
+)
 from .errors import KgnavbenchError
 from .graph import VIEW_SIZE
 from .kitchens import KITCHEN_NAMES, check_name, object_types
@@ -406,10 +414,8 @@ def observation_space(
     return spaces.Dict(parts)
 
 
-# upper bounds that name the limit rather than fill the memory: 140 envs train Table I's rows, and
-# no episode of the protocol is longer than 5000 actions
+# an upper bound that names the limit rather than fill the memory: 140 envs train Table I's rows
 MAX_ENVS = 4096
-MAX_EPISODE_STEPS = 1_000_000
 
 
 def positive_int(value, name: str, most: int | None = None) -> int:
@@ -625,11 +631,14 @@ class NavigationVectorEnv(Navigation, VectorEnv):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """New episodes for every sub-env, or (options["reset_mask"], a bool per sub-env) for those only;
         options["reach"]: starts at most that many actions from the destination (else the curriculum's,
-        with curriculum_steps)."""
+        with curriculum_steps). A seed starts the env over: its curriculum too, so that the same seed
+        gives the same episodes."""
         if seed is not None:
+            seed = checked_seed(seed, VecEnvError)
             self.np_random = np.random.default_rng(seed)
             self.single_action_space.seed(seed)
             self.action_space.seed(seed)
+            self.curriculum_done = 0
         if options is not None and not isinstance(options, dict):
             raise VecEnvError(f"options must be a dict, not {type(options).__name__}")
         options = dict(options or {})

@@ -546,17 +546,25 @@ def test_training_targets_from_a_list(make_env):
         ({"targets": ["Teapot|1"]}, "Teapot|1"),
         ({"targets": []}, "no"),
         ({"render_mode": "human"}, "unknown render_mode 'human'"),
-        ({"n_agents": 0}, "n_agents must be a positive integer"),
-        ({"n_agents": 2.0}, "n_agents must be a positive integer"),
-        ({"max_steps": 0}, "max_steps must be a positive integer"),
-        ({"max_steps": -5}, "max_steps must be a positive integer"),
-        ({"max_steps": 2.7}, "max_steps must be a positive integer"),
-        ({"max_steps": True}, "max_steps must be a positive integer"),
+        ({"n_agents": 0}, "n_agents must be a whole number in 1..100,000"),
+        ({"n_agents": 2.0}, "n_agents must be a whole number in 1..100,000"),
+        ({"n_agents": 10**7}, "n_agents must be a whole number in 1..100,000, not 10000000"),
+        ({"max_steps": 0}, "max_steps must be a whole number in 1..1,000,000"),
+        ({"max_steps": -5}, "max_steps must be a whole number in 1..1,000,000"),
+        ({"max_steps": 2.7}, "max_steps must be a whole number in 1..1,000,000"),
+        ({"max_steps": True}, "max_steps must be a whole number in 1..1,000,000"),
+        ({"max_steps": 2**63}, "max_steps must be a whole number in 1..1,000,000"),
     ],
 )
 def test_bad_options_are_reported(make_env, kwargs, message):
     with pytest.raises(EnvError, match=message.replace("|", r"\|")):
         make_env(**kwargs)
+
+
+@pytest.mark.parametrize("seed", [-1, "0", 1.5, True])
+def test_a_reset_seed_that_is_not_a_whole_number_from_0_is_refused(make_env, seed):
+    with pytest.raises(EnvError, match="seed must be a whole number >= 0 or None"):
+        make_env().reset(seed=seed)
 
 
 @pytest.mark.parametrize(

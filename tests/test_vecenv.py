@@ -4,6 +4,9 @@ arrays, nothing privileged, errors)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import cv2
 import gymnasium as gym
 import numpy as np
@@ -384,9 +387,6 @@ def test_vector_env_errors_name_the_problem(floorplan1_tasks):
 
 
 def test_every_kitchen_and_split_has_an_id_and_registering_loads_no_torch():
-    import subprocess
-    import sys
-
     from gymnasium.envs.registration import registry
 
     from kgnavbench.kitchens import KITCHEN_NAMES
@@ -410,6 +410,51 @@ def test_every_kitchen_and_split_has_an_id_and_registering_loads_no_torch():
 def test_the_vector_env_refuses_keywords_it_cannot_honour(keywords, named, floorplan1_tasks):
     with pytest.raises(vecenv.VecEnvError, match=named):
         vecenv.NavigationVectorEnv(**{"num_envs": 2, "kitchens": "FloorPlan1", **keywords})
+
+
+@pytest.mark.parametrize("seed", [-1, "0", [1, 2], 1.5, True])
+def test_both_faces_refuse_a_seed_that_is_not_a_whole_number_from_0(seed, floorplan1_tasks):
+    for env in (gym.make_vec("kgnavbench/FloorPlan1-v0", num_envs=2), gym.make("kgnavbench/FloorPlan1-v0")):
+        with pytest.raises(vecenv.VecEnvError, match="seed must be a whole number >= 0 or None"):
+            env.reset(seed=seed)
+
+
+def test_check_env_passes_with_a_curriculum_since_a_seed_starts_the_env_over(floorplan1_tasks):
+    """A seeded reset starts the curriculum over: the same seed gives the same episodes however far
+    the curriculum had moved (gymnasium's checker resets with one seed around its steps)."""
+    env = gym.make("kgnavbench/FloorPlan1-v0", curriculum_steps=5)
+    check_env(env.unwrapped, skip_render_check=True)
+    first, _ = env.reset(seed=7)
+    for _ in range(20):
+        env.step(0)
+    again, _ = env.reset(seed=7)
+    assert all(np.array_equal(first[k], again[k]) for k in first)
+    vector = gym.make_vec("kgnavbench/FloorPlan1-v0", num_envs=3, curriculum_steps=5)
+    first, _ = vector.reset(seed=7)
+    vector.step(np.zeros(3, np.int64))
+    again, _ = vector.reset(seed=7)
+    assert all(np.array_equal(first[k], again[k]) for k in first)
+
+
+ASYNC = """
+import gymnasium as gym, numpy as np, kgnavbench, torch
+torch.ones(1 << 20).sum()  # the parent's torch has used its thread pool before the fork
+envs = gym.make_vec("kgnavbench/FloorPlan1-v0", num_envs=2, vectorization_mode="async")
+observations, infos = envs.reset(seed=0)
+observations, rewards, *_ = envs.step(np.array([4, 5]))
+envs.close()
+print(observations["features"].shape, rewards.tolist())
+"""
+
+
+def test_gymnasiums_async_vector_env_runs_its_forked_workers(floorplan1_tasks, tmp_path):
+    """gymnasium's AsyncVectorEnv forks workers that build the env with torch: one torch thread in a
+    forked child (`encoder._one_torch_thread_after_fork`), or they wait forever on the parent's pool."""
+    script = tmp_path / "async_env.py"
+    script.write_text(ASYNC)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "(2, 512) [-0.01, -0.01]"
 
 
 def test_a_registered_ids_kitchens_cannot_be_replaced(floorplan1_tasks):
