@@ -434,6 +434,8 @@ def cmd_table(args: argparse.Namespace) -> int:
 
 
 def cmd_ship(args: argparse.Namespace) -> int:
+    from .jobs import write_zoo_listing
+    from .table_spec import SPEC_FILE, load_spec
     from .zoo import ship_run
 
     arguments.writable_folder(args.zoo, "--zoo")
@@ -446,10 +448,13 @@ def cmd_ship(args: argparse.Namespace) -> int:
         f.stat().st_size for f in args.zoo.rglob("*") if f.is_file() and not f.parent.name.startswith(".")
     )
     print(f"shipped {shipped.folder}: {size / 1e6:.1f} MB ({args.zoo} now {total / 1e6:.1f} MB)")
-    print(
-        f"for zoo/README.md: `{shipped.folder.name}`, {shipped.method} seed {shipped.seed}, "
-        f"{shipped.frames:,} frames (best.pt from {shipped.best_frames:,})"
-    )
+    if write_zoo_listing(args.zoo, load_spec(SPEC_FILE)):
+        print(f"rewrote the listing in {args.zoo / 'README.md'}")
+    else:
+        print(
+            f"{shipped.folder.name}: {shipped.method} seed {shipped.seed}, {shipped.frames:,} frames "
+            f"(best.pt from {shipped.best_frames:,}); {args.zoo / 'README.md'} has no listing to rewrite"
+        )
     return 0
 
 

@@ -34,11 +34,12 @@ from .evaluate import (
     EvalRun,
     evaluate,
 )
-from .files import end_with_parent, first_line, one_line
+from .files import atomic_write, end_with_parent, first_line, one_line
 from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, load_plugin
 from .runs import (
     TrainError,
+    load_checkpoint,
     run_directory,
     run_record,
     train_method,
@@ -53,7 +54,7 @@ from .table_spec import (
 )
 from .table_statistics import EpisodeValue, cell_episodes
 from .tasks import load_task_file
-from .zoo import trained_run
+from .zoo import RUN_FOLDER, record_differences, trained_run
 
 
 @dataclass(frozen=True)
@@ -147,6 +148,85 @@ def find_trained(
         plugin, plugin.config(options), preset.frames, seed, training_kitchens(preset.train_kitchens), on
     )
     return trained_run(folder, record, row.name, progress, unfinished)
+
+
+# zoo/README.md's listing sits between these lines; `kgnavbench ship` rewrites it (`write_zoo_listing`)
+ZOO_LISTING_START = (
+    "<!-- the listing below is written by `kgnavbench ship` from the folders here; do not edit -->"
+)
+ZOO_LISTING_END = "<!-- end of the listing -->"
+
+
+def zoo_listing(zoo: Path, spec: TableSpec) -> str:
+    """The markdown table of the runs in `zoo`, read from their own files: for each run folder, the
+    spec's row whose job it is (matched on TRAINED_RUN_KEYS, as `table --trained` matches) and the
+    presets that have that row, its seed, the frames it trained and those of best.pt, and whether it
+    ships last.pt. Runs in the spec's row order, then seed; a run of no row last, with the closest row
+    and what it differs in."""
+    plugins, wanted = {}, {}  # method -> plugin; (preset, row, seed, device, world) -> the job's keys
+
+    def job(preset: Preset, row: Row, config: dict) -> dict:
+        key = (preset.name, row.name, config.get("seed"), config.get("device"), config.get("world_size"))
+        if key not in wanted:
+            plugin = plugins.setdefault(row.method, load_plugin(row.method))
+            options = dataclasses.asdict(plugin.config(row_options(preset, row)))
+            wanted[key] = {
+                "method": row.method,
+                "options": json.loads(json.dumps(options)),
+                "frames": preset.frames,
+                "seed": config.get("seed"),
+                "kitchens": list(training_kitchens(preset.train_kitchens)),
+                "world_size": config.get("world_size"),
+                "device": config.get("device"),
+            }
+        return wanted[key]
+
+    lines = []
+    for folder in sorted(p for p in zoo.iterdir() if p.is_dir() and RUN_FOLDER.fullmatch(p.name)):
+        config = json.loads((folder / "config.json").read_text())
+        finished = json.loads((folder / "finished.json").read_text())
+        found, closest = {}, None  # row order -> (row, its presets), (differences, row, what differs)
+        for order, row in enumerate(spec.rows):
+            if row.method != config.get("method") or not trains(row):
+                continue
+            for preset in spec.presets.values():
+                differ = record_differences(config, job(preset, row, config))
+                if not differ:
+                    presets = found.setdefault(order, (row, []))[1]
+                    if row.name in preset.rows or not preset.rows:
+                        presets.append(preset.name)
+                elif closest is None or len(differ) < closest[0]:
+                    closest = (len(differ), row.name, ", ".join(differ[:3]))
+        if found:
+            row_order = min(found)
+            name, presets = found[row_order][0].name, ", ".join(found[row_order][1]) or "none"
+        else:
+            row_order, presets = len(spec.rows), "none"
+            name = f"none (closest: {closest[1]}; differs in {closest[2]})" if closest else "none"
+        best = load_checkpoint(folder / "best.pt")["frames"]
+        last = "yes" if (folder / "last.pt").is_file() else "no"
+        cells = f"| `{folder.name}` | {name} | {presets} | {config['seed']} | {finished['frames']:,} | "
+        cells += f"{best:,} | {last} |"
+        lines.append(((row_order, config["seed"], folder.name), cells))
+    head = (
+        "| run | row | presets | seed | frames | best.pt from | last.pt |\n|---|---|---|---:|---:|---:|---|\n"
+    )
+    return head + "".join(cells + "\n" for _, cells in sorted(lines))
+
+
+def write_zoo_listing(zoo: Path, spec: TableSpec) -> bool:
+    """Rewrite the listing in `zoo`/README.md (between ZOO_LISTING_START and _END); False where the
+    README has no listing (a zoo of your own)."""
+    readme = zoo / "README.md"
+    text = readme.read_text() if readme.is_file() else ""
+    if ZOO_LISTING_START not in text or ZOO_LISTING_END not in text:
+        return False
+    head, rest = text.split(ZOO_LISTING_START, 1)
+    _, tail = rest.split(ZOO_LISTING_END, 1)
+    atomic_write(
+        readme, f"{head}{ZOO_LISTING_START}\n{zoo_listing(zoo, spec)}{ZOO_LISTING_END}{tail}".encode()
+    )
+    return True
 
 
 def eval_config(

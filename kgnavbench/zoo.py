@@ -47,6 +47,22 @@ ADDED_OPTIONS = {
 UNWEIGHTED_OPTIONS = ("keep_every",)
 
 
+def record_differences(config: dict, record: dict) -> list[str]:
+    """What a run's config.json differs in from a job's `record` on TRAINED_RUN_KEYS ("options.il",
+    "frames", ...; none: it is that job's run). An option the run predates counts as ADDED_OPTIONS
+    says; UNWEIGHTED_OPTIONS are not compared."""
+    differ = [key for key in TRAINED_RUN_KEYS if config.get(key) != record[key]]
+    if isinstance(config.get("options"), dict) and "options" in differ:
+        options = {**{k: v for k, v in ADDED_OPTIONS.items() if k in record["options"]}, **config["options"]}
+        differ.remove("options")
+        differ += [
+            f"options.{k}"
+            for k in sorted({*options, *record["options"]} - set(UNWEIGHTED_OPTIONS))
+            if options.get(k) != record["options"].get(k)
+        ]
+    return differ
+
+
 def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfinished: bool = False) -> Path:
     """The finished run in `folder` (its run folders, or those of its train/) whose config matches
     `record` (`run_record`) on TRAINED_RUN_KEYS (`unfinished`: or the run still training). Trained by
@@ -65,18 +81,7 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfin
             continue  # not a run's config: nothing to match
         if not isinstance(config, dict) or config.get("method") != record["method"]:
             continue
-        differ = [key for key in TRAINED_RUN_KEYS if config.get(key) != want[key]]
-        if isinstance(config.get("options"), dict) and "options" in differ:
-            options = {
-                **{k: v for k, v in ADDED_OPTIONS.items() if k in want["options"]},
-                **config["options"],
-            }
-            differ.remove("options")
-            differ += [
-                f"options.{k}"
-                for k in sorted({*options, *want["options"]} - set(UNWEIGHTED_OPTIONS))
-                if options.get(k) != want["options"].get(k)
-            ]
+        differ = record_differences(config, want)
         if differ:
             if nearest is None or len(differ) < nearest[0]:
                 nearest = (len(differ), f"{config_path.parent} differs in {', '.join(differ[:6])}")

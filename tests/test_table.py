@@ -713,8 +713,20 @@ def test_ship_refuses_what_it_cannot_ship_whole_and_never_replaces(tmp_path, cap
     runs.save_checkpoint(run / "best.pt", {**state, "optimizer": {}})
     assert "last.pt does not exist" in ship("--last")
     runs.save_checkpoint(run / "last.pt", {**state, "frames": 20, "agents": {}})
+    from kgnavbench.jobs import ZOO_LISTING_END, ZOO_LISTING_START
+
+    readme = f"# my zoo\n\n{ZOO_LISTING_START}\n| stale |\n{ZOO_LISTING_END}\n\nnotes kept\n"
+    (zoo / "README.md").write_text(readme)
     assert main(["ship", str(run), "--zoo", str(zoo), "--last"]) == 0
-    assert "10 frames (best.pt from 10)" in capsys.readouterr().out
+    assert f"rewrote the listing in {zoo / 'README.md'}" in capsys.readouterr().out
+    listing = (zoo / "README.md").read_text()  # generated from the folder: its row (none), frames, last.pt
+    assert listing.startswith(f"# my zoo\n\n{ZOO_LISTING_START}\n| run | row |") and "stale" not in listing
+    assert listing.endswith(f"{ZOO_LISTING_END}\n\nnotes kept\n")
+    assert (
+        f"| `{run.name}` | none (closest: LSTM A3C; differs in " in listing
+        and "| 0 | 10 | 10 | yes |" in listing
+    )
+    (zoo / "README.md").unlink()
     shipped = zoo / run.name
     assert (shipped.stat().st_mode & 0o777) == 0o755  # readable by everyone, as the files are
     for name, frames in (("best", 10), ("last", 20)):

@@ -9,17 +9,23 @@ from pathlib import Path
 
 import pytest
 
-from kgnavbench import runs
+from kgnavbench import jobs, runs
 from kgnavbench.intervals import within_one_standard_error
+from kgnavbench.table_spec import SPEC_FILE, load_spec
 from kgnavbench.train import BEST_RULE
 
 ZOO = Path(__file__).resolve().parents[1] / "zoo"
 SHIPPED = sorted(p for p in ZOO.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
-def test_the_zoo_is_listed_in_its_readme_and_under_80_mb():
-    listed = re.findall(r"^\| `([a-z0-9_]+-[0-9a-f]{10})` \|", (ZOO / "README.md").read_text(), re.M)
-    assert sorted(listed) == [p.name for p in SHIPPED]  # each once, none missing, none extra
+def test_the_zoos_readme_lists_what_its_folders_give_and_it_is_under_80_mb():
+    """zoo/README.md's listing is `jobs.zoo_listing` of the folders, as `ship` writes it: each run
+    once, none missing, none extra, each with the row, frames and checkpoints its own files give."""
+    text = (ZOO / "README.md").read_text()
+    listing = text.split(jobs.ZOO_LISTING_START + "\n", 1)[1].split(jobs.ZOO_LISTING_END, 1)[0]
+    assert listing == jobs.zoo_listing(ZOO, load_spec(SPEC_FILE))
+    listed = re.findall(r"^\| `([a-z0-9_]+-[0-9a-f]{10})` \|", listing, re.M)
+    assert sorted(listed) == [p.name for p in SHIPPED]
     size = sum(f.stat().st_size for f in ZOO.rglob("*") if f.is_file())
     assert size < 80e6, f"zoo/ is {size / 1e6:.1f} MB"
 
