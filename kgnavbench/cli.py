@@ -33,7 +33,9 @@ import contextlib
 import json
 import os
 import re
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -522,8 +524,24 @@ def _join_negative_values(argv: list[str]) -> list[str]:
     return out
 
 
+def _terminated(signum, frame):
+    """SIGTERM (`kill`, a batch system's time limit) as Ctrl-C: what is half-written is removed (a
+    recording's partial file, a staging folder) and saved results stay, instead of dying mid-write."""
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminated) if in_main_thread else None
+    try:
+        return _main(argv)
+    finally:
+        if previous is not None:  # (None: a handler not set from Python, left as it is)
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: list[str]) -> int:
     try:
         args = build_parser().parse_args(_join_negative_values(argv))
         # every path given is made absolute once, here: a plugin that changes the working directory

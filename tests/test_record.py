@@ -461,3 +461,45 @@ def test_max_steps_above_the_cap_records_to_the_cap(tmp_path, floorplan1_tasks):
         "random_walk", {"stop_probability": "0"}, path, kitchens=["FloorPlan1"], episodes=1, max_steps=100_000
     )
     assert out["steps"] == 1000
+
+
+SLOW_WALKER = """
+import time
+DESCRIPTION = "turns, slowly"
+class Policy:
+    def reset(self, agent):
+        pass
+    def act(self, observations, infos):
+        time.sleep(0.05)
+        return {a: 4 for a in observations}
+def make_policy(config, spec):
+    return Policy()
+"""
+
+
+def test_a_recording_stopped_by_sigterm_leaves_no_partial_file(tmp_path, floorplan1_tasks):
+    """SIGTERM (a `kill`, a batch system's limit) ends `eval --video --record` as Ctrl-C does: exit 130,
+    and neither the video's nor the recording's partial file stays behind."""
+    import os
+    import signal
+    import time
+
+    (tmp_path / "baselines").mkdir()
+    (tmp_path / "baselines" / "slow_walker.py").write_text(SLOW_WALKER)
+    argv = [sys.executable, "-m", "kgnavbench", "eval", "--method", "slow_walker", "--kitchens", "FloorPlan1"]
+    argv += ["--episodes", "1", "--runs", "runs", "--record-episodes", "3", "--record-steps", "1000"]
+    argv += ["--video", "walk.mp4", "--record", "walk.rrd"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    child = subprocess.Popen(
+        argv, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob("*partial*")) and time.monotonic() < deadline and child.poll() is None:
+        time.sleep(0.2)
+    assert list(tmp_path.glob("*partial*")), "the recording never started"
+    time.sleep(1.0)
+    child.send_signal(signal.SIGTERM)
+    _, err = child.communicate(timeout=60)
+    assert child.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    assert not list(tmp_path.glob("*partial*")) and not (tmp_path / "walk.mp4").exists()
