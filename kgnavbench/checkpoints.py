@@ -28,7 +28,7 @@ import torch
 from .evaluate import evaluate
 from .files import atomic_write
 from .intervals import standard_error
-from .jobs import eval_config, find_trained, preset_rows, row_options, trains
+from .jobs import eval_config, find_trained, only_rows, preset_rows, row_options, trains
 from .metrics import COLUMNS, KINDS
 from .plots import FigureError, curves_image, write_png
 from .record import RecordError, read_metrics
@@ -158,6 +158,12 @@ def evidence(
     unknown = sorted(set(rows) - {row.name for row in spec.rows})
     if unknown:
         raise TableError(f"no row named {', '.join(map(repr, unknown))} in {spec.path}")
+    only_rows(spec, preset, rows)  # a row of the spec that the preset does not train: named
+    if any(not 0 <= seed < preset.seeds for seed in seeds):
+        raise TableError(
+            f"preset {preset_name!r} trains seeds 0..{preset.seeds - 1}, not "
+            + ", ".join(str(seed) for seed in seeds if not 0 <= seed < preset.seeds)
+        )
     read_csv(csv_path)  # a damaged CSV is refused before anything is evaluated
     for row in preset_rows(spec, preset):
         if (rows and row.name not in rows) or not trains(row):

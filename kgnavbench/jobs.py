@@ -537,6 +537,22 @@ def _attempts(path: Path) -> int:
         return 0
 
 
+def _check_ray_port(address: str, seconds: float = 5.0) -> None:
+    """A HOST:PORT address that nothing answers at is named at once (ray.init would wait minutes, then
+    fail with a page of its logs); "auto" and ray:// addresses are left to Ray."""
+    host, sep, port = address.rpartition(":")
+    if address == "auto" or "://" in address or not sep or not port.isdigit():
+        return
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=seconds):
+            pass
+    except OSError as e:
+        raise TableError(
+            f"--ray {address}: nothing answers there ({e.strerror or type(e).__name__}); start a cluster "
+            "with `ray start --head` (docs/scaling.md), or pass --ray auto on one of its nodes"
+        ) from e
+
+
 def run_jobs_on_ray(
     jobs: list[Job], address: str, progress=print, node_ip: str | None = None
 ) -> list[JobOutcome]:
@@ -554,6 +570,7 @@ def run_jobs_on_ray(
         raise TableError("--ray needs Ray, an optional extra: pip install 'kgnavbench[ray]'") from e
     if not jobs:
         return []
+    _check_ray_port(address)
     runs_dir = Path(jobs[0].runs_dir)
     attempts_dir = runs_dir / "ray" / f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     attempts_dir.mkdir(parents=True)

@@ -100,3 +100,21 @@ def test_an_unknown_row_is_refused_by_name(trained, capsys):
     argv = ["checkpoints", "--spec", str(spec), "--preset", "smoke", "--runs", str(runs), "--row", "Nope"]
     assert main(argv) == 2
     assert "no row named 'Nope'" in capsys.readouterr().err
+    # a row the preset does not train, or a seed it does not, is named: nothing evaluated or written
+    csv_path = runs / "refused.csv"
+    argv = [
+        "checkpoints",
+        "--spec",
+        str(spec),
+        "--preset",
+        "smoke",
+        "--runs",
+        str(runs),
+        "--csv",
+        str(csv_path),
+    ]
+    assert main([*argv, "--row", "+KG"]) == 2
+    assert "preset 'smoke' has no row '+KG'" in capsys.readouterr().err
+    assert main([*argv, "--seed", "0", "--seed", "4"]) == 2
+    assert "preset 'smoke' trains seeds 0..0, not 4" in capsys.readouterr().err
+    assert not csv_path.exists()

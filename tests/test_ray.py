@@ -263,3 +263,18 @@ def test_a_jobs_own_error_is_named_and_the_other_jobs_finish(cluster, local, tmp
     assert "1 of 2 jobs failed ([2/2] Raises (seed 0):" in captured.err
     assert "this plugin always fails" in captured.err
     assert len(list((tmp_path / "runs" / "eval").glob("random_walk-*/summary.json"))) == 1
+
+
+def test_an_address_nothing_answers_at_is_one_line_at_once(tmp_path, capsys):
+    """`--ray HOST:PORT` where no cluster listens: one line naming the address within seconds (ray.init
+    would wait minutes), nothing trained, no attempts folder."""
+    with socket.socket() as probe:  # a loopback port nothing listens on: bound here, never listened
+        probe.bind(("127.0.0.2", 0))
+        port = probe.getsockname()[1]
+        t0 = time.monotonic()
+        argv = ["table", "--preset", "smoke", "--runs", str(tmp_path / "runs"), "--ray", f"127.0.0.2:{port}"]
+        assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"--ray 127.0.0.2:{port}: nothing answers there" in err, err
+    assert time.monotonic() - t0 < 30
+    assert not (tmp_path / "runs" / "ray").exists() and not (tmp_path / "runs" / "train").exists()
