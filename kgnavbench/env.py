@@ -80,6 +80,7 @@ TARGET_SETS = ("seen", "unseen", "all")
 # fewer than 6,000 fixed episodes (one agent each), and no episode of it is longer than 5000 actions
 MAX_AGENTS = 100_000
 MAX_EPISODE_STEPS = 1_000_000
+MIN_VIEW_SIZE, MAX_VIEW_SIZE = 8, 256  # every state's view is kept: 256 px is 400 MB for 2,000 states
 OBSERVATION_FORMATS = ("dict", "box")
 IS_MOVE = np.isin(np.arange(len(ACTIONS)), MOVES)  # per action: a move (a failed one is a collision)
 
@@ -220,6 +221,9 @@ class NavigationEnv(ParallelEnv):
             raise EnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
         if not _is_integer(n_agents) or not 1 <= n_agents <= MAX_AGENTS:
             raise EnvError(f"n_agents must be a whole number in 1..{MAX_AGENTS:,}, not {n_agents!r}")
+        if not _is_integer(view_size) or not MIN_VIEW_SIZE <= view_size <= MAX_VIEW_SIZE:
+            sizes = f"{MIN_VIEW_SIZE}..{MAX_VIEW_SIZE}"
+            raise EnvError(f"view_size must be a whole number of pixels in {sizes}, not {view_size!r}")
         if not _is_integer(max_steps) or not 1 <= max_steps <= MAX_EPISODE_STEPS:
             raise EnvError(f"max_steps must be a whole number in 1..{MAX_EPISODE_STEPS:,}, not {max_steps!r}")
         n_agents, max_steps = int(n_agents), int(max_steps)
@@ -346,7 +350,7 @@ class NavigationEnv(ParallelEnv):
         if not all(_is_integer(v) for v in (start, max_steps)):
             raise EnvError(f"bad episode {episode!r}: start and max_steps must be integers")
         start, max_steps = int(start), int(max_steps)
-        if not 0 <= start < self.graph.n_states or max_steps < 1:
+        if not 0 <= start < self.graph.n_states or not 1 <= max_steps <= MAX_EPISODE_STEPS:
             raise EnvError(f"bad episode {episode!r}: start or max_steps out of range")
         if self._tables.dist[row, start] < 0:
             raise EnvError(f"bad episode {episode!r}: the goal cannot be reached from the start")
@@ -373,6 +377,11 @@ class NavigationEnv(ParallelEnv):
             )
         episodes = (options or {}).get("episodes")
         if episodes is not None:
+            if not isinstance(episodes, (list, tuple)):
+                raise EnvError(
+                    f"options['episodes'] must be a list of episodes ({{'target': id, 'start': state}}, "
+                    f"one per agent), not {type(episodes).__name__}"
+                )
             if len(episodes) > len(self.possible_agents):
                 raise EnvError(f"{len(episodes)} episodes for {len(self.possible_agents)} agents")
             drawn = [self._parse_episode(e) for e in episodes]

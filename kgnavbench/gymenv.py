@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import Env, spaces
 
-from .env import TRAINING_MAX_STEPS, _is_integer, checked_seed
+from .env import MAX_EPISODE_STEPS, TRAINING_MAX_STEPS, _is_integer, checked_seed
 from .vecenv import RENDER_FPS, Navigation, VecEnvError, observation_space, positive_int
 from .world import ACTIONS
 
@@ -64,7 +64,9 @@ class NavigationGymEnv(Navigation, Env):
         unknown = sorted(str(k) for k in options if k not in GYM_RESET_OPTIONS)
         if unknown:
             raise VecEnvError(f"unknown reset options {unknown}; known: {', '.join(GYM_RESET_OPTIONS)}")
-        cap = positive_int(options["max_steps"], "max_steps") if "max_steps" in options else self.max_steps
+        cap = self.max_steps
+        if "max_steps" in options:
+            cap = positive_int(options["max_steps"], "max_steps", MAX_EPISODE_STEPS)
         nav, sp = self.navigators, self.space
         if "target" in options:
             if "reach" in options:

@@ -308,8 +308,8 @@ class Navigators:
         if reach is None:
             lo = sp.start_ptr[targets]
             starts = sp.start_flat[lo + rng.integers(0, sp.start_ptr[targets + 1] - lo)]
-        else:
-            key = targets * NEAR_KEY + rng.integers(0, reach + 1, len(targets))
+        else:  # a reach beyond every distance is every start (and must not spill into the next key)
+            key = targets * NEAR_KEY + rng.integers(0, min(reach, NEAR_KEY - 1) + 1, len(targets))
             hi = np.maximum(np.searchsorted(sp.near_key, key, "right"), sp.near_ptr[targets] + 1)
             lo = np.searchsorted(sp.near_key, sp.near_key[hi - 1], "left")
             starts = sp.near_flat[lo + rng.integers(0, hi - lo)]

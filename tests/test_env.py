@@ -554,6 +554,9 @@ def test_training_targets_from_a_list(make_env):
         ({"max_steps": 2.7}, "max_steps must be a whole number in 1..1,000,000"),
         ({"max_steps": True}, "max_steps must be a whole number in 1..1,000,000"),
         ({"max_steps": 2**63}, "max_steps must be a whole number in 1..1,000,000"),
+        ({"view_size": 0}, "view_size must be a whole number of pixels in 8..256, not 0"),
+        ({"view_size": 10**6}, "view_size must be a whole number of pixels in 8..256"),
+        ({"view_size": 84.0}, "view_size must be a whole number of pixels"),
     ],
 )
 def test_bad_options_are_reported(make_env, kwargs, message):
@@ -714,3 +717,16 @@ def test_the_array_face_steps_as_the_dict_face(make_env, tasks):
     with pytest.raises(EnvError, match="integers"):
         array_env.reset(options={"episodes": episodes})
         array_env.step_arrays(np.zeros(3))
+
+
+@pytest.mark.parametrize(
+    ("episodes", "message"),
+    [
+        (5, "options\\['episodes'\\] must be a list of episodes"),
+        ("abc", "must be a list of episodes .* not str"),
+        ([{"target": APPLE, "start": 0, "max_steps": 2**63}], "out of range"),
+    ],
+)
+def test_fixed_episodes_that_are_no_list_or_out_of_range_are_refused(make_env, episodes, message):
+    with pytest.raises(EnvError, match=message):
+        make_env(n_agents=1).reset(options={"episodes": episodes})

@@ -463,3 +463,21 @@ def test_a_registered_ids_kitchens_cannot_be_replaced(floorplan1_tasks):
     assert gym.make("kgnavbench/FloorPlan1-v0", kitchens="FloorPlan1").unwrapped.space.kitchens == [
         "FloorPlan1"
     ]
+
+
+def test_a_reach_beyond_every_distance_draws_from_every_start(space, floorplan1_tasks):
+    """reach is "at most that far": 2**21 or 10**30 is no bound (never an overflow, nor a key that
+    spills into the next target's starts): each start is one of its own target's, at a distance
+    that target has."""
+    graph = floorplan1_tasks.graph
+    startable = space.closed & (graph.pitch == 0)
+    farthest = np.where(startable & (space.dist >= 0), space.dist, -1).max(1)
+    for reach in (2**21, 10**30):
+        nav = vecenv.Navigators(space, np.zeros(2000, np.int64))
+        nav.draw(np.arange(2000), np.random.default_rng(4), 200, reach=reach)
+        dist = space.dist[nav.target, nav.state]
+        assert (dist >= 0).all() and startable[nav.state].all() and (dist <= farthest[nav.target]).all()
+    env = gym.make("kgnavbench/FloorPlan1-v0")
+    env.reset(seed=0, options={"reach": 10**30})
+    with pytest.raises(vecenv.VecEnvError, match="max_steps must be at most 1,000,000"):
+        env.reset(options={"max_steps": 2**63})
