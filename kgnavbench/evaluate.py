@@ -45,6 +45,7 @@ from .files import (
     duration_text,
     first_line,
     sha256_file,
+    symbolic_link,
     write_with_checksum,
 )
 from .kitchens import KITCHEN_NAMES, check_name
@@ -58,6 +59,7 @@ from .metrics import (
     summary_as_json,
 )
 from .plugins import MAX_SEED, Plugin, PluginError, PolicySpec, guarded, load_plugin
+from .runs import UNWEIGHTED_OPTIONS
 from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks
 from .world import ACTIONS
 
@@ -416,6 +418,8 @@ def selected_checkpoint(run: str | Path, method: str, which: str = "best") -> Pa
     `which="last"`, the run's latest (`last.pt`, the final weights of a finished run). The run must be
     one of `method` (its config.json says which)."""
     directory = Path(run)
+    if symbolic_link(directory / "config.json"):
+        raise EvalError(symbolic_link(directory / "config.json"))
     try:
         trained = json.loads((directory / "config.json").read_text()).get("method")
     except (OSError, json.JSONDecodeError, AttributeError) as e:
@@ -424,6 +428,9 @@ def selected_checkpoint(run: str | Path, method: str, which: str = "best") -> Pa
         raise EvalError(f"--run {directory} trained {trained!r}, not {method!r}")
     which = checkpoint_name(which)
     path = directory / (f"snapshots/{which}.pt" if SNAPSHOT.fullmatch(which) else f"{which}.pt")
+    linked = symbolic_link(path) or symbolic_link(checksum_path(path))
+    if linked:
+        raise EvalError(linked)
     if not path.exists():
         if SNAPSHOT.fullmatch(which):
             kept = sorted(p.stem for p in (directory / "snapshots").glob("frames-*.pt"))
@@ -605,7 +612,11 @@ def check_fixed_options(config: EvalConfig, plugin_config) -> None:
     if not isinstance(trained, dict):
         raise EvalError(f"--run {config.run}: {path.name} holds no table of options (got {trained!r:.40})")
     resolved = json.loads(json.dumps(asdict(plugin_config)))
-    differ = [k for k, _ in config.options if k in trained and resolved.get(k) != trained[k]]
+    differ = [
+        k
+        for k, _ in config.options
+        if k in trained and resolved.get(k) != trained[k] and k not in UNWEIGHTED_OPTIONS
+    ]
     if differ:
         given = ", ".join(f"{k}={resolved.get(k)!r}" for k in differ)
         fixed = ", ".join(f"{k}={trained[k]!r}" for k in differ)

@@ -13,6 +13,15 @@ import time
 from pathlib import Path
 
 
+def symbolic_link(path: Path) -> str | None:
+    """A line saying that a run's file is a symbolic link, or None: a run's files (weights, their
+    checksums, config.json, finished.json, metrics.csv) are read as the files in their folder only, so
+    a link cannot pass another run's weights, or any file of the machine, off as this run's."""
+    if Path(path).is_symlink():
+        return f"{path} is a symbolic link; a run's files are read as files in its folder only"
+    return None
+
+
 def atomic_write(path: Path, content) -> None:
     """Write `content` (bytes, text, or a function save(binary file)) into a unique temporary file beside
     `path`, then rename it over `path`: readers never see half a file, concurrent writers never share a

@@ -43,6 +43,7 @@ import rerun.blueprint as rrb
 from . import evaluate
 from .env import parallel_env
 from .errors import KgnavbenchError
+from .files import symbolic_link
 from .graph import MOVES
 from .metrics import COLUMN_TITLES
 from .plugins import PluginError, guarded, load_plugin
@@ -472,6 +473,8 @@ def read_metrics(metrics_csv) -> dict[str, tuple[list[int], list[float]]]:
     """{column: (frames, values)} of a metrics.csv, leaving out empty cells (a value not measured at that
     row, e.g. validation between checkpoints)."""
     metrics_csv = Path(metrics_csv)
+    if symbolic_link(metrics_csv):
+        raise RecordError(symbolic_link(metrics_csv))
     try:
         with metrics_csv.open(newline="") as f:
             reader = csv.DictReader(f)

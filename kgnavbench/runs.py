@@ -30,6 +30,7 @@ from .files import (
     checksum_matches,
     checksum_path,
     first_line,
+    symbolic_link,
     write_with_checksum,
 )
 from .kitchens import KITCHEN_NAMES, check_name
@@ -37,6 +38,9 @@ from .plugins import MAX_SEED, load_plugin
 from .tasks import EPISODES_PER_TARGET, N_VAL_KITCHENS, load_task_file
 
 EXPERTS = ("walk_back", "shortest", "dagger")
+# options that change no weight of a run (how often it keeps snapshots): a run trained with another
+# value is the same run to `table --trained` and to an evaluation of its checkpoint
+UNWEIGHTED_OPTIONS = ("keep_every",)
 
 
 class TrainError(KgnavbenchError, ValueError):
@@ -383,6 +387,9 @@ def save_checkpoint(path: Path, state: dict) -> None:
 def load_checkpoint(path: Path | str) -> dict:
     """A checkpoint written by `train.learn`; anything else is a TrainError naming the file."""
     path = Path(path)
+    linked = symbolic_link(path) or symbolic_link(checksum_path(path))
+    if linked:
+        raise TrainError(linked)
     try:
         data = path.read_bytes()
     except FileNotFoundError as e:

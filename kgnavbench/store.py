@@ -15,7 +15,7 @@ import json
 from pathlib import Path
 
 from .errors import KgnavbenchError
-from .files import atomic_write, first_line, git_revision
+from .files import atomic_write, first_line, git_revision, symbolic_link
 
 
 def digest(identity: dict, digits: int) -> str:
@@ -28,6 +28,8 @@ def digest(identity: dict, digits: int) -> str:
 def read_record(path: Path, keys: tuple[str, ...], error: type[KgnavbenchError]) -> dict:
     """A run's JSON file (config.json, finished.json) as an object holding `keys`, or `error` naming
     the file and what is wrong."""
+    if symbolic_link(path):
+        raise error(symbolic_link(path))
     try:
         record = json.loads(path.read_text())
     except FileNotFoundError:

@@ -20,6 +20,7 @@ from . import store
 from .files import checksum_matches, first_line, one_line
 from .runs import (
     POLICY_KEYS,
+    UNWEIGHTED_OPTIONS,
     TrainError,
     checkpoint_differences,
     load_checkpoint,
@@ -43,8 +44,6 @@ ADDED_OPTIONS = {
     "attention_over": "union",
     "attention_bound": 0.0,
 }
-# options that change no weight of a run (how often it keeps snapshots): not compared
-UNWEIGHTED_OPTIONS = ("keep_every",)
 
 
 def record_differences(config: dict, record: dict) -> list[str]:

@@ -617,6 +617,17 @@ def test_eval_checkpoint_chooses_best_or_last(capsys, tmp_path, floorplan1_tasks
     err = capsys.readouterr().err
     assert f"trained with hidden={trained['hidden']}" in err and err.count("\n") == 1
     assert main([*base, "--set", f"hidden={trained['hidden']}"]) == 0
+    # keep_every (how often snapshots are kept) changes no weight: a run that kept them at another
+    # interval is evaluated as the preset asks (the paper preset's runs kept every 5M, it now says 2.5M)
+    capsys.readouterr()
+    assert main([*base, "--set", f"keep_every={trained['keep_every'] + 1000}"]) == 0
+    capsys.readouterr()
+    # a run's files are its folder's: a checkpoint linked from elsewhere is refused by name
+    (run_dir / "best.pt").rename(tmp_path / "elsewhere.pt")
+    (run_dir / "best.pt").symlink_to(tmp_path / "elsewhere.pt")
+    assert main(base) == 2
+    err = capsys.readouterr().err
+    assert "best.pt is a symbolic link" in err and err.count("\n") == 1
 
 
 def test_episode_cap_truncates_training_episodes(tmp_path, floorplan1_tasks):
