@@ -105,7 +105,7 @@ class NavigationGymEnv(Navigation, Env):
         self.navigators.begin(np.zeros(1, np.int64), np.array([row]), np.array([start]), cap)
 
     def step(self, action):
-        if not self.action_space.contains(action):
+        if isinstance(action, (bool, np.bool_)) or not self.action_space.contains(action):
             raise VecEnvError(f"action must be an integer in 0..{len(ACTIONS) - 1}, not {action!r}")
         if not self._reset_once:
             raise VecEnvError("step() before reset(): reset the env first")

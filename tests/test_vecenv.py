@@ -481,3 +481,11 @@ def test_a_reach_beyond_every_distance_draws_from_every_start(space, floorplan1_
     env.reset(seed=0, options={"reach": 10**30})
     with pytest.raises(vecenv.VecEnvError, match="max_steps must be at most 1,000,000"):
         env.reset(options={"max_steps": 2**63})
+
+
+@pytest.mark.parametrize("action", [True, 3.0, "3", 10])
+def test_the_single_env_refuses_an_action_that_is_no_integer_0_to_9(action, floorplan1_tasks):
+    env = gym.make("kgnavbench/FloorPlan1-v0")
+    env.reset(seed=0)
+    with pytest.raises(vecenv.VecEnvError, match="action must be an integer in 0..9"):
+        env.step(action)
