@@ -262,7 +262,8 @@ def evaluate_kitchen(
         for agent in list(observations):
             if terminations[agent] or truncations[agent]:
                 n = episode_of[agent]
-                finished[agent] = episode_result(kitchen, columns[n], episodes[n], infos[agent])
+                info = infos[agent]
+                finished[agent] = episode_result(kitchen, columns[n], episodes[n], info, terminations[agent])
                 del observations[agent], infos[agent]
     return [finished[agent] for agent in agents]  # in episode order, not finishing order
 
@@ -286,14 +287,15 @@ def _run_batched(plugin, policy, env, kitchen: str, columns: list[str], episodes
         for j in np.flatnonzero(ended).tolist():
             n = int(live[j])
             info = {key: column[j] for key, column in infos.items()}
-            results[n] = episode_result(kitchen, columns[n], episodes[n], info)
+            results[n] = episode_result(kitchen, columns[n], episodes[n], info, bool(terminated[j]))
         live = live[~ended]
     return results
 
 
-def episode_result(kitchen: str, column: str, episode: dict, info) -> EpisodeResult:
+def episode_result(kitchen: str, column: str, episode: dict, info, terminated: bool) -> EpisodeResult:
     """An ended episode's result from the env's infos at its last step (a per-agent dict, or one
-    agent's row of the array infos: plain Python values either way, as the results file holds them)."""
+    agent's row of the array infos: plain Python values either way, as the results file holds them).
+    `terminated`: it ended by the agent's Stop (with stop_ends every Stop ends it), not by its cap."""
     return EpisodeResult(
         kitchen=kitchen,
         target=str(info["target"]),
@@ -307,6 +309,7 @@ def episode_result(kitchen: str, column: str, episode: dict, info) -> EpisodeRes
         collisions=int(info["collisions"]),
         last_view_shows_target=bool(info["last_view_shows_target"]),
         episode_length=int(info["episode_length"]),
+        stopped=bool(terminated),
     )
 
 
@@ -480,6 +483,7 @@ RESULT_TYPES = {
     "collisions": int,
     "last_view_shows_target": bool,
     "episode_length": int,
+    "stopped": bool,  # absent in results files written before it was recorded (read as None)
 }
 
 
@@ -493,9 +497,11 @@ def parse_results(text: str, expected: list[tuple[str, int]], kitchen: str) -> l
     results = []
     for n, (line, (target, start)) in enumerate(zip(lines, expected), start=1):
         row = json.loads(line)
-        if not isinstance(row, dict) or set(row) != set(RESULT_TYPES):
+        if not isinstance(row, dict) or set(row) not in (set(RESULT_TYPES), set(RESULT_TYPES) - {"stopped"}):
             raise ValueError(f"line {n}: fields {sorted(row) if isinstance(row, dict) else row!r}")
         for key, kind in RESULT_TYPES.items():
+            if key not in row:
+                continue
             value = row[key]
             if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
                 raise ValueError(f"line {n}: {key}={value!r} is not {kind.__name__}")
@@ -505,6 +511,30 @@ def parse_results(text: str, expected: list[tuple[str, int]], kitchen: str) -> l
             raise ValueError(f"line {n}: kind {row['kind']!r} or column {row['column']!r} is unknown")
         results.append(EpisodeResult(**row))
     return results
+
+
+def scored_visible(results: list[EpisodeResult]) -> list[EpisodeResult]:
+    """An evaluation's episodes, run under the destination rule with Stop ending the episode, scored
+    under the visible rule (SAVN's): the same episodes, since the agents see the same things under both
+    rules and Stop ends the episode under both. Success is a Stop in a state whose view shows the
+    target (`last_view_shows_target`), and the shortest path the visible rule's, from the episode's
+    start. (The other way needs the final state, which a result does not hold.) Episodes without
+    `stopped` (results written before it was recorded) cannot be scored: an EvalError says so."""
+    out, distances = [], {}
+    for r in results:
+        if r.stopped is None:
+            raise EvalError(
+                f"the results of {r.kitchen} predate the record of whether an episode ended by Stop, so "
+                "they cannot be scored under the visible rule; evaluate again in a fresh --runs folder"
+            )
+        if (r.kitchen, r.target) not in distances:
+            tasks = load_tasks(r.kitchen)
+            target = next(t for t in tasks.targets if t.object_id == r.target)
+            distances[r.kitchen, r.target] = tasks.distances(target, "visible")
+        shortest = int(distances[r.kitchen, r.target][r.start])
+        success = r.stopped and r.last_view_shows_target
+        out.append(dataclasses.replace(r, success=bool(success), shortest_path=shortest))
+    return out
 
 
 def expected_episodes(kitchen: str, per_target: int, seen_only: bool = False) -> list[tuple[str, int]]:

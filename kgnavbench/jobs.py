@@ -33,6 +33,7 @@ from .evaluate import (
     EvalConfig,
     EvalRun,
     evaluate,
+    scored_visible,
 )
 from .files import atomic_write, end_with_parent, first_line, one_line
 from .kitchens import KITCHEN_NAMES
@@ -345,8 +346,11 @@ def execute(job: Job, progress=print) -> JobOutcome:
         reused = len(run.resumed) == len(run.config.kitchen_list())
     else:
         reused = True
+    results = run.results if run is not None else []
+    if job.preset.score_rule == "visible" and job.spec.protocol.success_rule != "visible":
+        results = scored_visible(results)  # the same evaluations, scored under the visible rule
     return JobOutcome(
-        cell_episodes(run.results) if run is not None else {},
+        cell_episodes(results) if run is not None else {},
         str(run_dir) if run_dir else "",
         str(run.directory) if run is not None else "",
         time.perf_counter() - t0,

@@ -38,6 +38,10 @@ class EpisodeResult:
     collisions: int
     last_view_shows_target: bool
     episode_length: int
+    # whether the episode ended by the agent's Stop (else by its cap); None in results files written
+    # before it was recorded. With Stop ending the episode, it lets one evaluation be scored under the
+    # other success rule (`evaluate.rescored`)
+    stopped: bool | None = None
 
 
 @dataclass(frozen=True)

@@ -141,6 +141,11 @@ CHECKPOINT_TEXT = {
 def caption(result: TableResult) -> str:
     p, pr = result.preset, result.spec.protocol
     rule = "Stop at the destination" if pr.success_rule == "destination" else "Stop with the target visible"
+    if p.score_rule and p.score_rule != pr.success_rule:  # (table_spec allows only visible here)
+        rule = (
+            "Stop with the target visible (SAVN's rule; the evaluations run under Stop at the destination, "
+            "scored under it: Stop ends the episode under both, so the episodes are the same)"
+        )
     stop = "Stop ends the episode" if pr.stop_ends else "a wrong Stop is a no-op"
     one_seed = " (one seed: the interval covers episodes only)" if p.seeds == 1 else ""
     some = p.unseen_target_kitchens

@@ -80,6 +80,9 @@ class Preset:
     # the training kitchens whose unseen targets are evaluated (the seen kitchens / unseen targets
     # column); the other training kitchens get their seen targets only. Empty: every target.
     unseen_target_kitchens: tuple[str, ...] = ()
+    # the success rule its cells are scored under; empty: the protocol's. "visible" on a protocol of
+    # "destination" with Stop ending the episode scores the same evaluations (`evaluate.scored_visible`)
+    score_rule: str = ""
 
     @property
     def threads(self) -> int:
@@ -217,6 +220,7 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
                 "rows",
                 "checkpoint",
                 "unseen_target_kitchens",
+                "score_rule",
             },  # fmt: skip
         )
         preset = Preset(
@@ -234,6 +238,7 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
             options=_options(f"{where}.set", _field(where, t, "set", dict, {}, required=False)),
             rows=tuple(_field(where, t, "rows", list, [], required=False)),
             checkpoint=_field(where, t, "checkpoint", str, "", required=False),
+            score_rule=_field(where, t, "score_rule", str, "", required=False),
             # in the kitchens' order: the same kitchens listed otherwise are the same evaluations
             unseen_target_kitchens=tuple(
                 sorted(
@@ -255,6 +260,15 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
             )
         if preset.checkpoint and preset.checkpoint not in CHECKPOINT_RULES:
             raise TableError(f"{where}.checkpoint = {preset.checkpoint!r}: choose one of {CHECKPOINT_RULES}")
+        scorable = (protocol.success_rule, "visible") == (
+            "destination",
+            preset.score_rule,
+        ) and protocol.stop_ends
+        if preset.score_rule not in ("", protocol.success_rule) and not scorable:
+            raise TableError(
+                f"{where}.score_rule = {preset.score_rule!r}: the only other rule a table scores its "
+                "evaluations under is 'visible', on a protocol of 'destination' where Stop ends episodes"
+            )
         if preset.frames < 1:
             raise TableError(f"{where}.frames = {preset.frames} must be at least 1")
         if not 1 <= preset.episodes <= EPISODES_PER_TARGET:

@@ -184,6 +184,32 @@ def test_destination_rule_paths_are_never_shorter(tmp_path, floorplan1_tasks):
         assert b.shortest_path >= 10  # starts are at least 10 actions from the destination
 
 
+def test_an_evaluation_scored_under_the_visible_rule_is_the_visible_rules_evaluation(
+    tmp_path, floorplan1_tasks
+):
+    """With Stop ending the episode the two rules give the same episodes: the destination rule's
+    evaluation scored by `scored_visible` equals the visible rule's own, episode by episode (success,
+    SPL's shortest path, everything). Results written before `stopped` was recorded are refused."""
+    from kgnavbench.evaluate import scored_visible
+
+    def run(rule):
+        config = EvalConfig(
+            "random_walk",
+            options=(("stop_probability", "0.01"),),  # some episodes end by their cap
+            success_rule=rule,
+            kitchens=("FloorPlan1",),
+            episodes_per_target=3,
+        )
+        return evaluate(config, tmp_path, progress=lambda line: None).results
+
+    destination, visible = run("destination"), run("visible")
+    assert any(r.stopped for r in destination) and not all(r.stopped for r in destination)
+    assert scored_visible(destination) == visible
+    assert sum(r.success for r in visible) > sum(r.success for r in destination)  # the rules differ here
+    with pytest.raises(EvalError, match="predate the record of whether an episode ended by Stop"):
+        scored_visible([dataclasses.replace(destination[0], stopped=None)])
+
+
 def test_random_walk_is_deterministic_and_resumes(tmp_path, floorplan1_tasks):
     config = EvalConfig(
         "random_walk",

@@ -94,6 +94,12 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
     assert dataclasses.replace(last, name="paper", description="", rows=(), checkpoint="") == (
         dataclasses.replace(paper, description="", rows=())
     )
+    # paper-visible: the paper preset's runs and evaluations, scored under the visible rule
+    visible = spec.presets["paper-visible"]
+    assert visible.score_rule == "visible" and paper.score_rule == ""
+    assert dataclasses.replace(visible, name="paper", description="", score_rule="") == (
+        dataclasses.replace(paper, description="")
+    )
 
 
 GOOD = SPEC_FILE.read_text()
@@ -117,6 +123,14 @@ UNSEEN_TARGETS = '[presets.{0}]\nunseen_target_kitchens = ["{1}"]\n'
         (
             lambda t: t.replace("[presets.smoke]\n", '[presets.smoke]\ncheckpoint = "best"\n'),
             "presets.smoke.checkpoint",
+        ),
+        (
+            lambda t: t.replace('score_rule = "visible"', 'score_rule = "nearby"'),
+            "presets.paper-visible.score_rule = 'nearby': the only other rule",
+        ),
+        (
+            lambda t: t.replace("stop_ends = true", "stop_ends = false"),
+            "presets.paper-visible.score_rule = 'visible': the only other rule",
         ),
         (lambda t: t.replace("frames = 2_000_000", "frames = -5"), "presets.quick.frames"),
         (lambda t: t.replace("frames = 2_000_000", 'frames = "lots"'), "presets.quick.frames"),
@@ -737,6 +751,40 @@ def test_ship_refuses_what_it_cannot_ship_whole_and_never_replaces(tmp_path, cap
     assert main(["ship", str(run), "--zoo", str(zoo)]) == 2
     assert "never replaced" in capsys.readouterr().err
     assert {p.name: p.read_bytes() for p in (zoo / run.name).iterdir()} == before
+
+
+def test_a_preset_scored_under_the_visible_rule_reuses_the_evaluations_and_says_so(
+    tmp_path, capsys, monkeypatch
+):
+    """`score_rule = "visible"`: the same evaluations as the preset it copies (none of its own), each
+    job's episodes scored under the visible rule (`evaluate.scored_visible`, tested against the visible
+    rule's own evaluation in test_evaluate.py), and the caption says which rule and why."""
+    from kgnavbench import jobs
+
+    text = SPEC_FILE.read_text()
+    head, tail = text.split("[presets.smoke]\n", 1)
+    smoke_block = tail.split("\n\n", 1)[0]
+    visible_block = (
+        f'[presets.smoke-visible]\nscore_rule = "visible"\nrows = ["Random walk"]\n{smoke_block}\n\n'
+    )
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(f'{head}{visible_block}[presets.smoke]\nrows = ["Random walk"]\n{tail}')
+    runs_dir = tmp_path / "runs"
+    scored = []
+    monkeypatch.setattr(jobs, "scored_visible", lambda results: scored.append(results) or results)
+    for preset in ("smoke", "smoke-visible"):
+        argv = ["table", "--spec", str(spec_path), "--preset", preset, "--workers", "1"]
+        assert main(argv + ["--runs", str(runs_dir), "--out", str(tmp_path)]) == 0
+        assert len(scored) == (preset == "smoke-visible")  # smoke's own rule: nothing scored
+    capsys.readouterr()
+    (evaluation,) = (runs_dir / "eval").iterdir()  # one evaluation: both tables read it
+    assert len(scored[0]) > 0 and all(r.stopped is not None for r in scored[0])
+    caption = (tmp_path / "table1-smoke-visible.md").read_text()
+    assert (
+        "Stop with the target visible (SAVN's rule; the evaluations run under Stop at the destination"
+        in caption
+    )
+    assert "success = Stop at the destination, " in (tmp_path / "table1-smoke.md").read_text()
 
 
 def test_a_preset_with_checkpoint_last_evaluates_each_runs_final_weights(tmp_path, capsys):
