@@ -372,6 +372,32 @@ def gcn_node_features(ck: dict, where="checkpoint") -> tuple[torch.Tensor, torch
     return h.float(), adjacency
 
 
+def tsne_figure(name: str, train_dir, out_dir, seed: int = 0) -> Path:
+    """tsne_gcn.png in out_dir: a t-SNE (seed) of the third GCN layer's node features of a run trained
+    with an accumulated knowledge graph (its best-validation checkpoint, else its last), the object
+    types that have a co-visibility edge (every type where fewer than 3 have), each labelled. `name`:
+    the row, for the title. (`figures` draws it for a table's last KG row; call it for any KG run.)"""
+    from .kitchens import object_types
+
+    found = _kg_checkpoint(_run_dir(train_dir, "training"))
+    if found is None:
+        raise FigureError(f"{train_dir} trained no accumulated knowledge graph: no t-SNE of its nodes")
+    ck, path = found
+    h, adjacency = gcn_node_features(ck, str(path))
+    keep = (adjacency.sum(1) > 0).nonzero().squeeze(1)
+    if len(keep) < 3:  # no co-visibility yet: every type
+        keep = torch.arange(len(h))
+    types = object_types()
+    return scatter_figure(
+        tsne(h[keep], seed=seed),
+        [types[i] for i in keep.tolist()],
+        Path(out_dir) / "tsne_gcn.png",
+        f"t-SNE of the third GCN layer's node features: {name}, {len(keep)} object types "
+        f"({int(ck['frames']):,} frames)",
+        size=TSNE_SIZE,
+    )
+
+
 def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, progress=print) -> list[Path]:
     """The paper's figures as PNGs in out_dir from rows (Table I row name, training run dir or None,
     evaluation run dir):
@@ -387,8 +413,6 @@ def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, pro
       * training_curves.png    validation SR (the training episodes' SR for a run without validation)
                                and training_reward.png mean reward per frame, vs frames, per trained row.
     A figure without data is skipped with a note to `progress`. Returns the paths written."""
-    from .kitchens import object_types  # a data file read; nothing heavy
-
     out_dir = Path(out_dir)
     # read everything first: bad input fails before any figure is (re)written
     unseen, metrics, trained = [], {}, []
@@ -428,30 +452,13 @@ def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, pro
 
     kg = None
     for name, train_dir in reversed(trained):  # the last KG row: +KG+Attention in Table I
-        found = _kg_checkpoint(train_dir)
-        if found is not None:
-            kg = (name, *found)
+        if _kg_checkpoint(train_dir) is not None:
+            kg = (name, train_dir)
             break
     if kg is None:
         progress("figures: no row trained a knowledge graph; tsne_gcn.png skipped")
     else:
-        name, ck, path = kg
-        h, adjacency = gcn_node_features(ck, str(path))
-        keep = (adjacency.sum(1) > 0).nonzero().squeeze(1)
-        if len(keep) < 3:  # no co-visibility yet: every type
-            keep = torch.arange(len(h))
-        types = object_types()
-        y = tsne(h[keep], seed=seed)
-        written.append(
-            scatter_figure(
-                y,
-                [types[i] for i in keep.tolist()],
-                out_dir / "tsne_gcn.png",
-                f"t-SNE of the third GCN layer's node features: {name}, {len(keep)} object types "
-                f"({int(ck['frames']):,} frames)",
-                size=TSNE_SIZE,
-            )
-        )
+        written.append(tsne_figure(*kg, out_dir, seed))
 
     if attention is None:
         progress("figures: no row trained with attention; attention_example.png skipped")
