@@ -34,6 +34,7 @@ from .plots import (
     write_png,
 )
 from .record import read_metrics  # a bad metrics.csv is a RecordError
+from .world import ACTIONS
 
 # ------------------------------------------------------------------------------------------------
 # t-SNE (van der Maaten & Hinton 2008), exact: O(n^2) memory, meant for the 125 GCN node features
@@ -173,6 +174,42 @@ def attention_figure(
     return write_png(path, img)
 
 
+EPISODE_STEPS_SHOWN = 60  # steps listed by attention_episode_figure (a longer episode: its first 60)
+
+
+def attention_episode_figure(episode: list, path, title: str, caption: str, width: int = 1200) -> Path:
+    """The paper's attention example over a whole episode: one line per step, its action and its 3 most
+    attended object types with their weights, each coloured by where the type was seen
+    (`attention_step`'s "episode": (action, [(type, weight, ATTENDED_IN name), ...]) per step)."""
+    where = dict(ATTENDED_IN)
+    shown = episode[:EPISODE_STEPS_SHOWN]
+    if not shown:
+        raise FigureError("attention_episode_figure needs at least one step")
+    line = 20
+    height = 110 + line * len(shown) + 50
+    img = new_canvas(title, (width, height))
+    top = 90
+    draw_text(img, "step", (30, top - 8), 0.45, (90, 90, 90))
+    draw_text(img, "action", (90, top - 8), 0.45, (90, 90, 90))
+    draw_text(img, "the 3 most attended object types", (260, top - 8), 0.45, (90, 90, 90))
+    for i, (action, attended) in enumerate(shown):
+        y = top + 8 + i * line
+        draw_text(img, str(i + 1), (30, y), 0.45)
+        draw_text(img, action, (90, y), 0.45)
+        for j, (name, weight, seen_in) in enumerate(attended):
+            if seen_in not in where or not math.isfinite(weight):
+                raise FigureError(f"step {i + 1}: type {name!r} weight {weight!r} seen {seen_in!r}")
+            x = 260 + j * 300
+            cv2.rectangle(img, (x, y - 10), (x + 10, y), where[seen_in], -1)
+            draw_text(img, f"{name} {weight:.2f}", (x + 16, y), 0.45)
+    present = {seen_in for _, attended in shown for _, _, seen_in in attended}
+    draw_legend(img, [(n, c, "bar") for n, c in ATTENDED_IN if n in present], width - 60, 60)
+    more = f" (the first {EPISODE_STEPS_SHOWN} of {len(episode)} steps)" if len(episode) > len(shown) else ""
+    for k, text in enumerate(wrap_text(caption + more, width - 60, 0.5)[:2]):
+        draw_text(img, text, (30, height - 40 + 20 * k), 0.5, (70, 70, 70))
+    return write_png(path, img)
+
+
 def attention_step(
     method: str, run, kitchen: str = "FloorPlan1", seed: int = 0, row: str | None = None
 ) -> dict:
@@ -220,7 +257,7 @@ def attention_step(
             obs = observations[agent]
             actions = policy.act(observations, infos)
             seen = (obs["view"], obs["target"], obs["view_objects"], obs["target_objects"])
-            steps.append((*seen, explained(agent)))
+            steps.append((*seen, explained(agent), int(actions[agent])))
             observations, _, terminations, truncations, infos = env.step(actions)
             info = infos[agent]
             if terminations[agent] or truncations[agent]:
@@ -233,12 +270,12 @@ def attention_step(
         return ATTENDED_IN[2 if v and g else 0 if v else 1 if g else 3][0]
 
     def spread(i: int) -> tuple[int, int, int]:  # places with a weight >= 0.01, types, earliest
-        _, _, in_view, in_target, weights = steps[i]
+        _, _, in_view, in_target, weights, _ = steps[i]
         places = {seen_in(n, in_view, in_target) for n, w in weights if w >= 0.01}
         return len(places), len(weights), -i
 
     k = max(range(len(steps)), key=spread)
-    view, target_image, in_view, in_target, weights = steps[k]
+    view, target_image, in_view, in_target, weights, _ = steps[k]
     if not weights:
         raise FigureError(f"{method} attended to nothing in {kitchen}'s episode: no attention to draw")
     outcome = "success" if info["success"] else "failure"
@@ -251,14 +288,28 @@ def attention_step(
         f"{info['episode_length']} ({outcome}), the first step whose attention (weights >= 0.01) "
         f"reaches the most places, then the most types ({len(weights)}); bars: the "
         f"{min(len(weights), ATTENTION_BARS)} most attended.",
+        # every step of the episode: its action and its 3 most attended types (the paper's example)
+        "episode": [
+            (ACTIONS[action], [(n, w, seen_in(n, v, g)) for n, w in attended[:3]])
+            for _, _, v, g, attended, action in steps
+        ],
     }
 
 
-def attention_example(
-    method: str, run, path, kitchen: str = "FloorPlan1", seed: int = 0, row: str | None = None
-) -> Path:
-    """`attention_figure` of `attention_step` into `path`."""
-    return attention_figure(path=path, **attention_step(method, run, kitchen, seed, row))
+def attention_figures(attention: dict, out_dir) -> list[Path]:
+    """attention_example.png (one step, its attention as bars) and attention_episode.png (every step's
+    3 most attended types) in out_dir, from `attention_step`'s dict."""
+    out_dir = Path(out_dir)
+    episode = attention["episode"]
+    one_step = {key: value for key, value in attention.items() if key != "episode"}
+    caption = (
+        attention["caption"].split(": step ")[0]
+        + f": each step's 3 most attended types ({len(episode)} steps)."
+    )
+    return [
+        attention_figure(path=out_dir / "attention_example.png", **one_step),
+        attention_episode_figure(episode, out_dir / "attention_episode.png", attention["title"], caption),
+    ]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -463,7 +514,7 @@ def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, pro
     if attention is None:
         progress("figures: no row trained with attention; attention_example.png skipped")
     else:
-        written.append(attention_figure(path=out_dir / "attention_example.png", **attention))
+        written += attention_figures(attention, out_dir)
 
     # validation SR where the run measured it (the checkpoint selection's number), else training SR
     success, reward, validated = {}, {}, 0

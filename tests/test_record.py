@@ -322,20 +322,31 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks, monkeypatch):
     paths = figures.figures(rows, tmp_path / "figures", progress=notes.append)
     names = [p.name for p in paths]
     assert names == [
-        "collisions_unseen.png", "tsne_gcn.png", "attention_example.png", "training_curves.png",
-        "training_reward.png",
+        "collisions_unseen.png", "tsne_gcn.png", "attention_example.png", "attention_episode.png",
+        "training_curves.png", "training_reward.png",
     ]  # fmt: skip
     assert not notes
-    sizes = {"tsne_gcn.png": figures.TSNE_SIZE, "attention_example.png": figures.ATTENTION_SIZE}
+    step = figures.attention_step("kg_attention", run, row="+KG+Attention")
+    steps = len(step["episode"][: figures.EPISODE_STEPS_SHOWN])
+    sizes = {
+        "tsne_gcn.png": figures.TSNE_SIZE,
+        "attention_example.png": figures.ATTENTION_SIZE,
+        "attention_episode.png": (1200, 160 + 20 * steps),  # one line per step
+    }
     for p in paths:
         assert _is_figure(p, sizes.get(p.name, plots.FIGURE_SIZE)), p
 
     # the attention example's step: weights over the types in the view or the target, summing to 1;
     # a softmax over all nodes weighs the others too ("in neither"), and figures() prefers the former
-    step = figures.attention_step("kg_attention", run, row="+KG+Attention")
     places = {place for _, _, place in step["attended"]}
     assert places and "in neither" not in places and "+KG+Attention (" in step["caption"]
     assert sum(w for _, w, _ in step["attended"]) == pytest.approx(1.0, abs=1e-4)
+    # and every step of its episode: the action taken and the (at most) 3 most attended types
+    from kgnavbench.world import ACTIONS
+
+    for action, top in step["episode"]:
+        assert action in ACTIONS and 1 <= len(top) <= 3
+        assert [w for _, w, _ in top] == sorted((w for _, w, _ in top), reverse=True)
     all_nodes = train_method(
         "kg_attention",
         {**options, "attention_nodes": "all", "kg_readout": "pooled"},  # the pooled reading only
