@@ -460,7 +460,8 @@ def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, pro
                                a co-visibility edge, each labelled;
       * attention_example.png  the last row trained with attention: one step of an episode in
                                FloorPlan1, its view, its target and its attention over object types
-                               (`attention_example`);
+                               (`attention_step`); attention_episode.png every step of that
+                               episode, its action and its 3 most attended types;
       * training_curves.png    validation SR (the training episodes' SR for a run without validation)
                                and training_reward.png mean reward per frame, vs frames, per trained row.
     A figure without data is skipped with a note to `progress`. Returns the paths written."""
