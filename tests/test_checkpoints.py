@@ -70,8 +70,9 @@ def test_each_snapshot_is_one_line_and_the_rules_replay_the_trainers_picks(train
     assert main(argv) == 0
     assert out.read_bytes() == before
     assert sorted(p.name for p in (runs / "eval").iterdir()) == evaluations
-    # another seed's process (none here: one seed) evaluates nothing and keeps the lines there
-    assert main([*argv, "--seed", "1"]) == 0 and out.read_bytes() == before
+    # a seed the preset does not train (it has one) is refused by name, the lines kept as they are
+    assert main([*argv, "--seed", "1"]) == 2 and out.read_bytes() == before
+    assert "preset 'smoke' trains seeds 0..0, not 1" in capsys.readouterr().err
     image = cv2.imread(str(png))
     assert image is not None and image.shape[0] > 300 and image.shape[1] > 600
 
