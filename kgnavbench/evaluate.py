@@ -58,8 +58,7 @@ from .metrics import (
     summarize,
     summary_as_json,
 )
-from .plugins import MAX_SEED, Plugin, PluginError, PolicySpec, guarded, load_plugin
-from .runs import UNWEIGHTED_OPTIONS
+from .plugins import MAX_SEED, UNWEIGHTED_OPTIONS, Plugin, PluginError, PolicySpec, guarded, load_plugin
 from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks
 from .world import ACTIONS
 

@@ -128,6 +128,10 @@ class Plugin:
         return policy
 
 
+# options that change no weight of a run (how often it keeps snapshots): a run trained with another
+# value is the same run to `table --trained` and to an evaluation of its checkpoint
+UNWEIGHTED_OPTIONS = ("keep_every",)
+
 import_timeout: float | None = None  # seconds a plugin file's import may take (`methods`: 20)
 
 # How long plugin code may run before kgnavbench says so (every WAIT_NOTE seconds, on stderr) or gives

@@ -38,9 +38,6 @@ from .plugins import MAX_SEED, load_plugin
 from .tasks import EPISODES_PER_TARGET, N_VAL_KITCHENS, load_task_file
 
 EXPERTS = ("walk_back", "shortest", "dagger")
-# options that change no weight of a run (how often it keeps snapshots): a run trained with another
-# value is the same run to `table --trained` and to an evaluation of its checkpoint
-UNWEIGHTED_OPTIONS = ("keep_every",)
 
 
 class TrainError(KgnavbenchError, ValueError):

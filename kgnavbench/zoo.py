@@ -18,9 +18,9 @@ from pathlib import Path
 
 from . import store
 from .files import checksum_matches, first_line, one_line
+from .plugins import UNWEIGHTED_OPTIONS
 from .runs import (
     POLICY_KEYS,
-    UNWEIGHTED_OPTIONS,
     TrainError,
     checkpoint_differences,
     load_checkpoint,
