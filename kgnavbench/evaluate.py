@@ -519,7 +519,7 @@ def scored_visible(results: list[EpisodeResult]) -> list[EpisodeResult]:
     target (`last_view_shows_target`), and the shortest path the visible rule's, from the episode's
     start. (The other way needs the final state, which a result does not hold.) Episodes without
     `stopped` (results written before it was recorded) cannot be scored: an EvalError says so."""
-    out, distances = [], {}
+    out, tasks, distances = [], {}, {}  # kitchen -> its tasks (loaded once); (kitchen, target) -> BFS
     for r in results:
         if r.stopped is None:
             raise EvalError(
@@ -527,9 +527,11 @@ def scored_visible(results: list[EpisodeResult]) -> list[EpisodeResult]:
                 "they cannot be scored under the visible rule; evaluate again in a fresh --runs folder"
             )
         if (r.kitchen, r.target) not in distances:
-            tasks = load_tasks(r.kitchen)
-            target = next(t for t in tasks.targets if t.object_id == r.target)
-            distances[r.kitchen, r.target] = tasks.distances(target, "visible")
+            if r.kitchen not in tasks:
+                tasks[r.kitchen] = load_tasks(r.kitchen)
+            kitchen = tasks[r.kitchen]
+            target = next(t for t in kitchen.targets if t.object_id == r.target)
+            distances[r.kitchen, r.target] = kitchen.distances(target, "visible")
         shortest = int(distances[r.kitchen, r.target][r.start])
         success = r.stopped and r.last_view_shows_target
         out.append(dataclasses.replace(r, success=bool(success), shortest_path=shortest))
