@@ -87,7 +87,7 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
     assert control.options == {"il": "true", "tse": "true", "detections": "true"}
     # the paper preset: the paper's nine rows and the control row (issue 25), in the paper's order
     assert list(spec.presets["paper"].rows) == [*PAPER_ROWS, "+IL+TSE, object detections, no graph"]
-    # paper-last: the paper preset's runs of two rows, tested with their last.pt; the same runs only
+    # paper-last: the paper preset's runs, every row, tested with their last.pt; the same runs only
     # while every field that decides them is the paper preset's
     paper, last = spec.presets["paper"], spec.presets["paper-last"]
     assert last.checkpoint == "last" and paper.checkpoint == "" and set(last.rows) <= set(paper.rows)
