@@ -435,6 +435,12 @@ def checkpoints_arguments(sub) -> argparse.ArgumentParser:
     )
     p.add_argument("--csv", type=Path, help="default: tables/checkpoints-<preset>.csv")
     p.add_argument("--figure", type=Path, help="also draw validation against each column over frames")
+    p.add_argument(
+        "--matched",
+        action="store_true",
+        help="also compare the spec's pairs of rows at the same frames (every snapshot both kept), "
+        "other - base per cell with its 95%% interval, into CSV-matched.csv (and FIGURE-matched.png)",
+    )
     device_option(p)
     return p
 

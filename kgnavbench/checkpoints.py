@@ -9,6 +9,12 @@ SR, SPL and episodes of each of Table I's cells. Any checkpoint rule, the paper'
 SR, ties to the later), the one-standard-error reading, the final weights or a fixed frame count, is
 then a replay over the CSV (`replay`), with no training and no evaluation.
 
+Table I's rule picks each run's checkpoint by its own validation peak, so two rows' cells can differ by
+when those peaks came. `matched` compares the spec's pairs of rows at the same frame counts instead:
+at each snapshot both rows' runs kept, other - base per cell, with the interval Table I's comparisons
+get (each row's stratified bootstrap over seeds and episodes, differenced), from the snapshots'
+evaluations (tables/checkpoints-<preset>-matched.csv).
+
 The snapshots live in the runs folder, not in git (16 per run would pass 600 MB), and that folder can
 be lost: evaluate a run's snapshots as soon as it finishes. The CSV (tables/checkpoints-<preset>.csv)
 is what is committed; a run's lines replace that run's earlier ones, the others are kept.
@@ -27,13 +33,14 @@ import torch
 
 from .evaluate import evaluate
 from .files import atomic_write
-from .intervals import standard_error
+from .intervals import difference, standard_error, verdict
 from .jobs import eval_config, find_trained, only_rows, preset_rows, row_options, trains
 from .metrics import COLUMNS, KINDS
 from .plots import FigureError, curves_image, write_png
 from .record import RecordError, read_metrics
 from .runs import load_checkpoint
-from .table_spec import TableError, TableSpec
+from .table_spec import CELL_KEYS, METRICS, TableError, TableSpec
+from .table_statistics import RowResult, cell_episodes, cell_statistics, paper_value
 
 EPISODES_PER_TARGET = 5
 CELLS = tuple(f"{column}_{kind}" for kind in KINDS for column in COLUMNS)
@@ -194,6 +201,124 @@ def evidence(
     return read_csv(csv_path)
 
 
+MATCHED_FIELDS = (
+    "base",
+    "other",
+    "frames",
+    "base_seeds",
+    "other_seeds",
+    "cell",
+    "metric",
+    "paper_difference",  # the paper's other - base in this cell (its Table I: best-validation weights)
+    "difference",  # ours at these frames: mean over seeds, other - base, in points
+    "low",
+    "high",
+    "verdict",
+)
+
+
+def _snapshot_episodes(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device) -> dict:
+    """{frames: that snapshot's episodes per cell} for one finished run (its evaluations resume: the
+    snapshots `evidence` evaluated are read, not run again)."""
+    preset = spec.preset(preset_name)
+    options = row_options(preset, row)
+    out = {}
+    for frames in snapshot_frames(run_dir):
+        config = eval_config(spec, preset, row, seed, options, run_dir, device, f"frames-{frames}", episodes)
+        out[frames] = cell_episodes(evaluate(config, runs_dir, progress=lambda _line: None).results)
+    return out
+
+
+def matched(
+    spec: TableSpec,
+    preset_name: str,
+    runs_dir: Path,
+    episodes: int = EPISODES_PER_TARGET,
+    device: str = "cpu",
+    progress=print,
+) -> list[dict]:
+    """For each comparison of the spec whose two rows the preset trains: other - base at every frame
+    count where each row has a snapshot of every finished seed, per cell and metric, with its 95%
+    interval and verdict, as Table I computes them (a row's seeds with no finished run in `runs_dir` are
+    left out and counted in base_seeds / other_seeds)."""
+    preset = spec.preset(preset_name)
+    rows = {row.name: row for row in preset_rows(spec, preset) if trains(row)}
+    snapshots: dict[str, list[dict]] = {}  # row name -> per finished seed: {frames: cells}
+    lines = []
+    for comparison in spec.comparisons:
+        if comparison.base not in rows or comparison.other not in rows:
+            continue
+        for name in (comparison.base, comparison.other):
+            if name in snapshots:
+                continue
+            snapshots[name] = []
+            for seed in range(preset.seeds):
+                try:
+                    run_dir = find_trained(
+                        preset, rows[name], seed, row_options(preset, rows[name]), runs_dir, device,
+                        lambda _line: None,
+                    )  # fmt: skip
+                except TableError:
+                    continue  # not trained, or not finished: the seed is left out
+                got = _snapshot_episodes(
+                    spec, preset_name, rows[name], seed, run_dir, runs_dir, episodes, device
+                )
+                if got:
+                    snapshots[name].append(got)
+        base, other = snapshots[comparison.base], snapshots[comparison.other]
+        if not base or not other:
+            progress(
+                f"skipped: {comparison.other} - {comparison.base}: a row has no finished run with snapshots"
+            )
+            continue
+        common = set.intersection(*(set(seed_snapshots) for seed_snapshots in base + other))
+        for frames in sorted(common):
+            results = {
+                name: RowResult(rows[name], [s[frames] for s in per_seed], [], [], 0.0)
+                for name, per_seed in ((comparison.base, base), (comparison.other, other))
+            }
+            for cell in CELL_KEYS:
+                if not all(seed[cell] for r in results.values() for seed in r.episodes):
+                    continue  # a cell without episodes (the paper's FF A3C has no unseen kitchens)
+                stats = {name: cell_statistics(r, cell) for name, r in results.items()}
+                for metric in METRICS:
+                    b, o = stats[comparison.base][metric], stats[comparison.other][metric]
+                    ours = difference(b.bootstrap, o.bootstrap)
+                    paper_b = paper_value(rows[comparison.base], cell, metric)
+                    paper_o = paper_value(rows[comparison.other], cell, metric)
+                    paper = None if paper_b is None or paper_o is None else round(paper_o - paper_b, 2) + 0.0
+                    lines.append(
+                        {
+                            "base": comparison.base,
+                            "other": comparison.other,
+                            "frames": frames,
+                            "base_seeds": len(base),
+                            "other_seeds": len(other),
+                            "cell": cell,
+                            "metric": metric,
+                            "paper_difference": math.nan if paper is None else paper,
+                            "difference": ours.estimate,
+                            "low": ours.low,
+                            "high": ours.high,
+                            "verdict": verdict(paper, ours.low, ours.high),
+                        }
+                    )
+        progress(
+            f"{comparison.other} - {comparison.base}: {len(common)} matched snapshots "
+            f"({len(other)} and {len(base)} seeds)"
+        )
+    return lines
+
+
+def write_matched_csv(path: Path, lines: list[dict]) -> None:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, MATCHED_FIELDS, lineterminator="\n")
+    writer.writeheader()
+    for line in lines:
+        writer.writerow({key: _cell(line[key]) for key in MATCHED_FIELDS})
+    atomic_write(Path(path), out.getvalue())
+
+
 def _cell(value) -> str:
     if isinstance(value, float):
         return "" if math.isnan(value) else f"{value:.4f}"
@@ -306,4 +431,46 @@ def figure(lines: list[dict], path: Path, row_order: list[str] | None = None) ->
     while len(panels) % PANELS_PER_LINE and len(panels) > PANELS_PER_LINE:
         panels.append(blank)
     grid = [cv2.hconcat(panels[i : i + PANELS_PER_LINE]) for i in range(0, len(panels), PANELS_PER_LINE)]
+    return write_png(path, cv2.vconcat(grid) if len(grid) > 1 else grid[0])
+
+
+MATCHED_PANELS = (  # (cell, panel title): the static targets' columns, SR
+    ("seen_seen/static", "seen kitchens, seen targets"),
+    ("seen_unseen/static", "seen kitchens, unseen targets"),
+    ("unseen_kitchens/static", "unseen kitchens"),
+)
+
+
+def matched_figure(lines: list[dict], path: Path) -> Path:
+    """Each comparison's other - base SR over frames with its 95% interval, one line of panels per
+    comparison (the static targets' three columns)."""
+    comparisons = list(dict.fromkeys((x["other"], x["base"]) for x in lines))
+    if not comparisons:
+        raise FigureError("no matched comparison to draw")
+    grid = []
+    for other, base in comparisons:
+        panels = []
+        for cell, title in MATCHED_PANELS:
+            mine = sorted(
+                (
+                    x
+                    for x in lines
+                    if (x["other"], x["base"], x["cell"], x["metric"]) == (other, base, cell, "SR")
+                ),
+                key=lambda x: x["frames"],
+            )
+            xs = [x["frames"] / 1e6 for x in mine]
+            series = {
+                f"{other} - {base}": (xs, [x["difference"] for x in mine]),
+                "95% interval, low": (xs, [x["low"] for x in mine]),
+                "95% interval, high": (xs, [x["high"] for x in mine]),
+                "no difference": (xs, [0.0] * len(xs)),
+            }
+            if not xs:
+                panels.append(np.full((PANEL_SIZE[1], PANEL_SIZE[0], 3), 255, np.uint8))
+                continue
+            panels.append(
+                curves_image(series, title, "frames (M)", "SR difference (points)", PANEL_SIZE, (0,), (0,))
+            )
+        grid.append(cv2.hconcat(panels))
     return write_png(path, cv2.vconcat(grid) if len(grid) > 1 else grid[0])

@@ -16,7 +16,7 @@
                      [--jobs | --job N | --ray ADDRESS] [--trained DIR | --train-only] [--row NAME ...]
                      [--device auto|cpu|cuda]
     kgnavbench ship RUN_DIR [--zoo DIR] [--last]
-    kgnavbench checkpoints [--preset paper] [--runs DIR] [--row NAME] [--figure PNG]
+    kgnavbench checkpoints [--preset paper] [--runs DIR] [--row NAME] [--figure PNG] [--matched]
     kgnavbench figures [--preset quick] [--runs DIR] [--out DIR] [--trained DIR] [--row NAME ...]
     kgnavbench view FILE.rrd
     kgnavbench encoder pretrain [--epochs N] [--samples-per-epoch N] [--shift PX] [--seed S] [--out FILE]
@@ -461,7 +461,7 @@ def cmd_ship(args: argparse.Namespace) -> int:
 
 
 def cmd_checkpoints(args: argparse.Namespace) -> int:
-    from .checkpoints import evidence, figure
+    from .checkpoints import evidence, figure, matched, matched_figure, write_matched_csv
     from .table_spec import SPEC_FILE, load_spec
 
     spec = load_spec(args.spec or SPEC_FILE)
@@ -476,6 +476,15 @@ def cmd_checkpoints(args: argparse.Namespace) -> int:
     print(f"wrote {csv_path}: {len(lines)} snapshots of {len({x['run'] for x in lines})} runs")
     if args.figure and lines:
         print(f"wrote {figure(lines, args.figure, [row.name for row in spec.rows])}")
+    if args.matched:
+        pairs = matched(
+            spec, args.preset, args.runs, args.episodes, device, lambda line: print(line, flush=True)
+        )
+        matched_csv = csv_path.with_name(f"{csv_path.stem}-matched.csv")
+        write_matched_csv(matched_csv, pairs)
+        print(f"wrote {matched_csv}: {len(pairs)} cells")
+        if args.figure and pairs:
+            print(f"wrote {matched_figure(pairs, args.figure.with_name(f'{args.figure.stem}-matched.png'))}")
     return 0
 
 

@@ -119,3 +119,36 @@ def test_an_unknown_row_is_refused_by_name(trained, capsys):
     assert main([*argv, "--seed", "0", "--seed", "4"]) == 2
     assert "preset 'smoke' trains seeds 0..0, not 4" in capsys.readouterr().err
     assert not csv_path.exists()
+
+
+def test_two_rows_are_compared_at_the_same_frames(trained, tmp_path, capsys):
+    """--matched: other - base at every snapshot both rows kept, per cell, with the interval Table I's
+    comparisons get; with one seed a cell's difference is the two snapshots' SR apart."""
+    spec, runs, _ = trained
+    two = tmp_path / "spec.toml"
+    text = spec.read_text()
+    assert 'rows = ["Random walk", "LSTM A3C"]' in text
+    two.write_text(text.replace('rows = ["Random walk", "LSTM A3C"]', 'rows = ["LSTM A3C", "+IL"]'))
+    assert main(["table", "--spec", str(two), "--preset", "smoke", "--runs", str(runs), "--train-only"]) == 0
+    out, png = tmp_path / "c.csv", tmp_path / "c.png"
+    argv = ["checkpoints", "--spec", str(two), "--preset", "smoke", "--runs", str(runs), "--episodes", "1"]
+    assert main([*argv, "--csv", str(out), "--figure", str(png), "--matched"]) == 0
+    printed = capsys.readouterr().out
+    assert "+IL - LSTM A3C:" in printed and "matched snapshots (1 and 1 seeds)" in printed
+    lines = read_csv(out)
+    with (tmp_path / "c-matched.csv").open() as f:
+        pairs = list(csv.DictReader(f))
+    assert {(p["other"], p["base"]) for p in pairs} == {("+IL", "LSTM A3C")}
+    sr = {(x["row"], x["frames"]): x for x in lines}
+    frames = sorted({x["frames"] for x in lines})
+    assert sorted({int(p["frames"]) for p in pairs}) == frames  # both rows keep the same snapshots
+    for p in pairs:
+        if p["metric"] != "SR":
+            continue
+        key = p["cell"].replace("/", "_") + "_sr"
+        expected = sr[("+IL", int(p["frames"]))][key] - sr[("LSTM A3C", int(p["frames"]))][key]
+        assert float(p["difference"]) == pytest.approx(expected, abs=1e-3)
+        assert float(p["low"]) <= float(p["difference"]) <= float(p["high"])
+        assert p["verdict"] in ("holds", "reversed", "cannot tell", "higher", "lower")
+    image = cv2.imread(str(tmp_path / "c-matched.png"))
+    assert image is not None and image.shape[1] > 600
