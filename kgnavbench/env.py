@@ -179,6 +179,14 @@ class BatchObservations(Mapping):
         return len(self._keys)
 
 
+def whole_number_in(value, name: str, least: int, most: int, error: type[Exception]) -> int:
+    """`value` as an int if it is a whole number (not a bool or a float) in least..most, else `error`
+    naming it: the one bound check of the env and the vector env."""
+    if not _is_integer(value) or not least <= value <= most:
+        raise error(f"{name} must be a whole number in {least:,}..{most:,}, not {value!r}")
+    return int(value)
+
+
 def checked_seed(seed, error: type[Exception]) -> int:
     """A reset's seed: a whole number >= 0 (numpy's and Gymnasium's rule), else `error` naming it."""
     if not _is_integer(seed) or seed < 0:
@@ -219,14 +227,11 @@ class NavigationEnv(ParallelEnv):
             raise EnvError(f"unknown success_rule {success_rule!r}; choose one of {SUCCESS_RULES}")
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise EnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
-        if not _is_integer(n_agents) or not 1 <= n_agents <= MAX_AGENTS:
-            raise EnvError(f"n_agents must be a whole number in 1..{MAX_AGENTS:,}, not {n_agents!r}")
+        n_agents = whole_number_in(n_agents, "n_agents", 1, MAX_AGENTS, EnvError)
         if not _is_integer(view_size) or not MIN_VIEW_SIZE <= view_size <= MAX_VIEW_SIZE:
             sizes = f"{MIN_VIEW_SIZE}..{MAX_VIEW_SIZE}"
             raise EnvError(f"view_size must be a whole number of pixels in {sizes}, not {view_size!r}")
-        if not _is_integer(max_steps) or not 1 <= max_steps <= MAX_EPISODE_STEPS:
-            raise EnvError(f"max_steps must be a whole number in 1..{MAX_EPISODE_STEPS:,}, not {max_steps!r}")
-        n_agents, max_steps = int(n_agents), int(max_steps)
+        max_steps = whole_number_in(max_steps, "max_steps", 1, MAX_EPISODE_STEPS, EnvError)
         self.tasks = tasks if tasks is not None else load_tasks(kitchen, view_size)
         self.kitchen = self.tasks.kitchen
         self.graph = self.tasks.graph

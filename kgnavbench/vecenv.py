@@ -90,6 +90,7 @@ from .env import (
     _is_integer,
     checked_seed,
     transition,
+    whole_number_in,
 )
 from .errors import KgnavbenchError
 from .graph import VIEW_SIZE
@@ -418,12 +419,8 @@ def observation_space(
 MAX_ENVS = 4096
 
 
-def positive_int(value, name: str, most: int | None = None) -> int:
-    if not _is_integer(value) or value < 1:
-        raise VecEnvError(f"{name} must be a positive integer, not {value!r}")
-    if most is not None and value > most:
-        raise VecEnvError(f"{name} must be at most {most:,}, not {value:,}")
-    return int(value)
+def positive_int(value, name: str, most: int) -> int:
+    return whole_number_in(value, name, 1, most, VecEnvError)
 
 
 class Navigation:
