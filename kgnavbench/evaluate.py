@@ -359,7 +359,8 @@ def read_weights(config: EvalConfig) -> Weights:
     bytes (a trainer that replaces best.pt meanwhile changes nothing), and its sha256 is the
     evaluation's identity. The checkpoint's own record must name the method (config.json may be
     relabelled; the weights are what they are)."""
-    source = selected_checkpoint(config.run, config.method, config.checkpoint)
+    run_record = run_config(config.run)  # one read: the method's check and the identity's compare it
+    source = selected_checkpoint(config.run, config.method, config.checkpoint, run_record)
     try:
         data = source.read_bytes()
     except OSError as e:
@@ -381,8 +382,7 @@ def read_weights(config: EvalConfig) -> Weights:
         )
     # a checkpoint is what it says it is: its own record of options, kitchens, seed and frames must
     # be the run's config.json's (+IL+TSE's weights in an LSTM A3C run share method and model)
-    run_config = json.loads((Path(config.run) / "config.json").read_text())
-    differ = checkpoint_differences(record, run_config)
+    differ = checkpoint_differences(record, run_record)
     if differ:
         raise EvalError(
             f"{source} is not the run its config.json describes: it differs in {'; '.join(differ[:4])}"
@@ -415,17 +415,28 @@ def freeze_weights(directory: Path, weights: Weights) -> Path:
     return path
 
 
-def selected_checkpoint(run: str | Path, method: str, which: str = "best") -> Path:
-    """Table I's rule: the checkpoint with the best validation SR (`best.pt` of a training run); with
-    `which="last"`, the run's latest (`last.pt`, the final weights of a finished run). The run must be
-    one of `method` (its config.json says which)."""
+def run_config(run: str | Path) -> dict:
+    """A training run's config.json, read once (a symbolic link or an unreadable file: one line)."""
     directory = Path(run)
     if symbolic_link(directory / "config.json"):
         raise EvalError(symbolic_link(directory / "config.json"))
     try:
-        trained = json.loads((directory / "config.json").read_text()).get("method")
-    except (OSError, json.JSONDecodeError, AttributeError) as e:
+        record = json.loads((directory / "config.json").read_text())
+    except (OSError, json.JSONDecodeError) as e:
         raise EvalError(f"--run {directory} is not a training run (no readable config.json)") from e
+    if not isinstance(record, dict):
+        raise EvalError(f"--run {directory} is not a training run (its config.json is not a table)")
+    return record
+
+
+def selected_checkpoint(
+    run: str | Path, method: str, which: str = "best", record: dict | None = None
+) -> Path:
+    """Table I's rule: the checkpoint with the best validation SR (`best.pt` of a training run); with
+    `which="last"`, the run's latest (`last.pt`, the final weights of a finished run). The run must be
+    one of `method` (its config.json, or `record` read from it, says which)."""
+    directory = Path(run)
+    trained = (record if record is not None else run_config(directory)).get("method")
     if trained != method:
         raise EvalError(f"--run {directory} trained {trained!r}, not {method!r}")
     which = checkpoint_name(which)
