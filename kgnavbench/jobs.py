@@ -170,13 +170,11 @@ def zoo_listing(zoo: Path, spec: TableSpec) -> str:
         key = (preset.name, row.name, config.get("seed"), config.get("device"), config.get("world_size"))
         if key not in wanted:
             plugin = plugins.setdefault(row.method, load_plugin(row.method))
-            options = dataclasses.asdict(plugin.config(row_options(preset, row)))
-            wanted[key] = {
-                "method": row.method,
-                "options": json.loads(json.dumps(options)),
-                "frames": preset.frames,
+            kitchens = training_kitchens(preset.train_kitchens)
+            # the job's record as the trainer builds it, on the run's own ranks and device
+            record = run_record(plugin, plugin.config(row_options(preset, row)), preset.frames, 0, kitchens)
+            wanted[key] = record | {
                 "seed": config.get("seed"),
-                "kitchens": list(training_kitchens(preset.train_kitchens)),
                 "world_size": config.get("world_size"),
                 "device": config.get("device"),
             }

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ast
 import csv
+import functools
 import hashlib
 import io
 import json
@@ -228,6 +229,13 @@ def training_code_sha256(package: Path = Path(__file__).parent) -> str:
     return digest.hexdigest()
 
 
+@functools.cache
+def imported_training_code_sha256() -> str:
+    """`training_code_sha256` of this checkout, once per process: the code a process trains with is
+    the code it imported, whatever happens to the files afterwards."""
+    return training_code_sha256()
+
+
 def run_record(
     plugin, config, frames: int, seed: int, kitchens: tuple[str, ...], device: str = "cpu"
 ) -> dict:
@@ -236,7 +244,7 @@ def run_record(
         "method": plugin.name,
         "options": json.loads(json.dumps(asdict(config))),
         "plugin_source_sha256": hashlib.sha256(plugin.source_bytes()).hexdigest(),
-        "training_code_sha256": training_code_sha256(),
+        "training_code_sha256": imported_training_code_sha256(),
         "frames": frames,
         "seed": seed,
         "kitchens": list(kitchens),
