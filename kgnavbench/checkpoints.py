@@ -39,8 +39,8 @@ from .metrics import COLUMNS, KINDS
 from .plots import FigureError, curves_image, write_png
 from .record import RecordError, read_metrics
 from .runs import load_checkpoint
-from .table_spec import CELL_KEYS, METRICS, TableError, TableSpec
-from .table_statistics import RowResult, cell_episodes, cell_statistics, paper_value
+from .table_spec import CELL_KEYS, METRICS, Row, TableError, TableSpec
+from .table_statistics import RowResult, cell_episodes, cell_statistics, paper_difference
 
 EPISODES_PER_TARGET = 5
 CELLS = tuple(f"{column}_{kind}" for kind in KINDS for column in COLUMNS)
@@ -56,6 +56,19 @@ FIELDS = (
     *(f"{cell}_{m}" for cell in CELLS for m in ("sr", "spl", "episodes")),
 )
 RULES = ("best", "one-se", "last")  # what `replay` reads: Table I's rule, its other reading, final weights
+
+
+def evaluating_preset(spec: TableSpec, name: str):
+    """The preset `name`, one that evaluates its runs under the protocol's rule: a preset that only
+    rescores another's evaluations (`score_rule`) is refused, since these lines would not be scored
+    its way."""
+    preset = spec.preset(name)
+    if preset.score_rule:
+        raise TableError(
+            f"preset {name!r} scores another preset's evaluations under the {preset.score_rule!r} "
+            "rule; read the snapshots under the preset that evaluates them"
+        )
+    return preset
 
 
 def snapshot_frames(run_dir: Path) -> list[int]:
@@ -161,7 +174,7 @@ def evidence(
     # one thread: a snapshot's batches are a kitchen's ~170 episodes, too small to share, and beside a
     # training two threads spin against it (measured: 27 times slower per kitchen than one thread)
     torch.set_num_threads(1)
-    preset = spec.preset(preset_name)
+    preset = evaluating_preset(spec, preset_name)
     unknown = sorted(set(rows) - {row.name for row in spec.rows})
     if unknown:
         raise TableError(f"no row named {', '.join(map(repr, unknown))} in {spec.path}")
@@ -219,7 +232,7 @@ MATCHED_FIELDS = (
 
 def _snapshot_episodes(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device) -> dict:
     """{frames: that snapshot's episodes per cell} for one finished run (its evaluations resume: the
-    snapshots `evidence` evaluated are read, not run again)."""
+    snapshots `evidence` evaluated are read, not run again; one not yet evaluated is evaluated)."""
     preset = spec.preset(preset_name)
     options = row_options(preset, row)
     out = {}
@@ -234,89 +247,127 @@ def matched(
     preset_name: str,
     runs_dir: Path,
     episodes: int = EPISODES_PER_TARGET,
+    rows: tuple[str, ...] = (),
     device: str = "cpu",
     progress=print,
 ) -> list[dict]:
-    """For each comparison of the spec whose two rows the preset trains: other - base at every frame
-    count where each row has a snapshot of every finished seed, per cell and metric, with its 95%
-    interval and verdict, as Table I computes them (a row's seeds with no finished run in `runs_dir` are
-    left out and counted in base_seeds / other_seeds)."""
-    preset = spec.preset(preset_name)
-    rows = {row.name: row for row in preset_rows(spec, preset) if trains(row)}
+    """For each comparison of the spec whose two rows the preset trains (with `rows`: those that
+    involve one of them), other - base at every frame count where every finished seed of both rows
+    kept a snapshot, per cell and metric: the mean over seeds with its 95% interval and verdict,
+    computed as Table I's comparisons are (each row's stratified bootstrap over seeds and episodes, in
+    the row's and cell's own stream, differenced), on the snapshot evaluations' episodes (`episodes`
+    per target: wider intervals than the table's 100). base_seeds and other_seeds count the seeds
+    used; a seed without a finished run, and a frame count some seed lacks, are named and left out.
+    The intervals are each valid on their own; frames share streams, so they are no joint band."""
+    torch.set_num_threads(1)  # as `evidence`: a snapshot's batches are too small to share
+    preset = evaluating_preset(spec, preset_name)
+    trained = {row.name: row for row in preset_rows(spec, preset) if trains(row)}
     snapshots: dict[str, list[dict]] = {}  # row name -> per finished seed: {frames: cells}
-    lines = []
-    for comparison in spec.comparisons:
-        if comparison.base not in rows or comparison.other not in rows:
-            continue
-        for name in (comparison.base, comparison.other):
-            if name in snapshots:
-                continue
+
+    def row_snapshots(name: str) -> list[dict]:
+        if name not in snapshots:
             snapshots[name] = []
+            row = trained[name]
             for seed in range(preset.seeds):
                 try:
                     run_dir = find_trained(
-                        preset, rows[name], seed, row_options(preset, rows[name]), runs_dir, device,
-                        lambda _line: None,
-                    )  # fmt: skip
-                except TableError:
-                    continue  # not trained, or not finished: the seed is left out
-                got = _snapshot_episodes(
-                    spec, preset_name, rows[name], seed, run_dir, runs_dir, episodes, device
-                )
-                if got:
-                    snapshots[name].append(got)
-        base, other = snapshots[comparison.base], snapshots[comparison.other]
-        if not base or not other:
-            progress(
-                f"skipped: {comparison.other} - {comparison.base}: a row has no finished run with snapshots"
-            )
-            continue
-        common = set.intersection(*(set(seed_snapshots) for seed_snapshots in base + other))
-        for frames in sorted(common):
-            results = {
-                name: RowResult(rows[name], [s[frames] for s in per_seed], [], [], 0.0)
-                for name, per_seed in ((comparison.base, base), (comparison.other, other))
-            }
-            for cell in CELL_KEYS:
-                if not all(seed[cell] for r in results.values() for seed in r.episodes):
-                    continue  # a cell without episodes (the paper's FF A3C has no unseen kitchens)
-                stats = {name: cell_statistics(r, cell) for name, r in results.items()}
-                for metric in METRICS:
-                    b, o = stats[comparison.base][metric], stats[comparison.other][metric]
-                    ours = difference(b.bootstrap, o.bootstrap)
-                    paper_b = paper_value(rows[comparison.base], cell, metric)
-                    paper_o = paper_value(rows[comparison.other], cell, metric)
-                    paper = None if paper_b is None or paper_o is None else round(paper_o - paper_b, 2) + 0.0
-                    lines.append(
-                        {
-                            "base": comparison.base,
-                            "other": comparison.other,
-                            "frames": frames,
-                            "base_seeds": len(base),
-                            "other_seeds": len(other),
-                            "cell": cell,
-                            "metric": metric,
-                            "paper_difference": math.nan if paper is None else paper,
-                            "difference": ours.estimate,
-                            "low": ours.low,
-                            "high": ours.high,
-                            "verdict": verdict(paper, ours.low, ours.high),
-                        }
+                        preset, row, seed, row_options(preset, row), runs_dir, device, lambda _line: None
                     )
-        progress(
-            f"{comparison.other} - {comparison.base}: {len(common)} matched snapshots "
-            f"({len(other)} and {len(base)} seeds)"
-        )
+                except TableError as e:
+                    progress(f"skipped: {e}")
+                    continue
+                got = _snapshot_episodes(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device)
+                if got:
+                    progress(f"{name} seed {seed}: {len(got)} snapshots ({run_dir.name})")
+                    snapshots[name].append(got)
+                else:
+                    progress(f"skipped: {run_dir} kept no snapshot (trained without keep_every)")
+        return snapshots[name]
+
+    lines = []
+    for comparison in spec.comparisons:
+        pair = (comparison.base, comparison.other)
+        if not all(name in trained for name in pair) or (rows and not set(rows) & set(pair)):
+            continue
+        base, other = row_snapshots(comparison.base), row_snapshots(comparison.other)
+        label = f"{comparison.other} - {comparison.base}"
+        if not base or not other:
+            missing = comparison.base if not base else comparison.other
+            progress(f"skipped: {label}: {missing} has no finished run with snapshots in {runs_dir}")
+            continue
+        kept = [set(seed_snapshots) for seed_snapshots in base + other]
+        common, every = set.intersection(*kept), set.union(*kept)
+        if every - common:
+            lost = ", ".join(f"{f:,}" for f in sorted(every - common))
+            progress(f"{label}: frames {lost} left out (not every seed kept a snapshot there)")
+        for frames in sorted(common):
+            lines += compared_at(
+                trained[comparison.base],
+                [s[frames] for s in base],
+                trained[comparison.other],
+                [s[frames] for s in other],
+                frames,
+            )
+        progress(f"{label}: {len(common)} matched snapshots ({len(other)} and {len(base)} seeds)")
     return lines
 
 
-def write_matched_csv(path: Path, lines: list[dict]) -> None:
+def compared_at(base: Row, base_episodes: list[dict], other: Row, other_episodes: list[dict], frames: int):
+    """other - base at one frame count, per cell and metric, from each row's episodes per seed ("column/
+    kind" -> EpisodeValues, as `cell_episodes` gives): the lines of `matched`, computed as Table I's
+    comparisons are (`table_statistics`: each row's own bootstrap stream, differenced)."""
+    stats = {
+        name: {cell: cell_statistics(RowResult(row, per_seed, [], [], 0.0), cell) for cell in CELL_KEYS}
+        for name, row, per_seed in (("base", base, base_episodes), ("other", other, other_episodes))
+    }
+    lines = []
+    for cell in CELL_KEYS:
+        for metric in METRICS:
+            b, o = stats["base"][cell][metric], stats["other"][cell][metric]
+            if b.bootstrap is None or o.bootstrap is None:
+                continue  # a cell without episodes for one of the rows, as Table I leaves it
+            ours = difference(b.bootstrap, o.bootstrap)
+            paper = paper_difference(base, other, cell, metric)
+            lines.append(
+                {
+                    "base": base.name,
+                    "other": other.name,
+                    "frames": frames,
+                    "base_seeds": len(base_episodes),
+                    "other_seeds": len(other_episodes),
+                    "cell": cell,
+                    "metric": metric,
+                    "paper_difference": math.nan if paper is None else paper,
+                    "difference": ours.estimate,
+                    "low": ours.low,
+                    "high": ours.high,
+                    "verdict": verdict(paper, ours.low, ours.high),
+                }
+            )
+    return lines
+
+
+def merge_matched_csv(path: Path, new: list[dict]) -> list[dict]:
+    """`new` lines into the matched CSV at `path`: each comparison in `new` replaces that comparison's
+    lines, the others' are kept (a call for some rows loses no other pair's evidence)."""
+    pairs = {(line["base"], line["other"]) for line in new}
+    kept = []
+    if Path(path).exists():
+        try:
+            with Path(path).open(newline="") as f:
+                reader = csv.DictReader(f)
+                if tuple(reader.fieldnames or ()) != MATCHED_FIELDS:
+                    raise TableError(f"{path} is not a matched checkpoints CSV (its columns differ)")
+                kept = [line for line in reader if (line["base"], line["other"]) not in pairs]
+        except (OSError, UnicodeDecodeError, csv.Error) as e:
+            raise TableError(f"cannot read {path}: {e}") from e
+    lines = kept + [{key: _cell(line[key]) for key in MATCHED_FIELDS} for line in new]
     out = io.StringIO()
     writer = csv.DictWriter(out, MATCHED_FIELDS, lineterminator="\n")
     writer.writeheader()
-    for line in lines:
-        writer.writerow({key: _cell(line[key]) for key in MATCHED_FIELDS})
+    writer.writerows(lines)
     atomic_write(Path(path), out.getvalue())
+    return lines
 
 
 def _cell(value) -> str:

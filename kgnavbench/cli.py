@@ -461,7 +461,7 @@ def cmd_ship(args: argparse.Namespace) -> int:
 
 
 def cmd_checkpoints(args: argparse.Namespace) -> int:
-    from .checkpoints import evidence, figure, matched, matched_figure, write_matched_csv
+    from .checkpoints import evidence, figure, matched, matched_figure, merge_matched_csv
     from .table_spec import SPEC_FILE, load_spec
 
     spec = load_spec(args.spec or SPEC_FILE)
@@ -469,8 +469,13 @@ def cmd_checkpoints(args: argparse.Namespace) -> int:
     device = arguments.device_name(args.device)
     csv_path = args.csv or spec.path.parent / f"checkpoints-{args.preset}.csv"
     arguments.writable_folder(csv_path.parent, "--csv")
+    rows = tuple(args.row or ())
+    if args.matched and (args.seed or args.unfinished):
+        raise UsageError(
+            "--matched compares every finished seed of two rows: not with --seed or --unfinished"
+        )
     lines = evidence(
-        spec, args.preset, args.runs, csv_path, args.episodes, tuple(args.row or ()), device,
+        spec, args.preset, args.runs, csv_path, args.episodes, rows, device,
         lambda line: print(line, flush=True), tuple(args.seed or ()), args.unfinished,
     )  # fmt: skip
     print(f"wrote {csv_path}: {len(lines)} snapshots of {len({x['run'] for x in lines})} runs")
@@ -478,11 +483,11 @@ def cmd_checkpoints(args: argparse.Namespace) -> int:
         print(f"wrote {figure(lines, args.figure, [row.name for row in spec.rows])}")
     if args.matched:
         pairs = matched(
-            spec, args.preset, args.runs, args.episodes, device, lambda line: print(line, flush=True)
+            spec, args.preset, args.runs, args.episodes, rows, device, lambda line: print(line, flush=True)
         )
         matched_csv = csv_path.with_name(f"{csv_path.stem}-matched.csv")
-        write_matched_csv(matched_csv, pairs)
-        print(f"wrote {matched_csv}: {len(pairs)} cells")
+        written = merge_matched_csv(matched_csv, pairs)
+        print(f"wrote {matched_csv}: {len(pairs)} lines new, {len(written)} in all")
         if args.figure and pairs:
             print(f"wrote {matched_figure(pairs, args.figure.with_name(f'{args.figure.stem}-matched.png'))}")
     return 0

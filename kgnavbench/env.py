@@ -181,7 +181,7 @@ class BatchObservations(Mapping):
 
 def whole_number_in(value, name: str, least: int, most: int, error: type[Exception]) -> int:
     """`value` as an int if it is a whole number (not a bool or a float) in least..most, else `error`
-    naming it: the one bound check of the env and the vector env."""
+    naming it: the constructors' bound check, in the env and the vector env."""
     if not _is_integer(value) or not least <= value <= most:
         raise error(f"{name} must be a whole number in {least:,}..{most:,}, not {value!r}")
     return int(value)

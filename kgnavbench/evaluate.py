@@ -359,8 +359,8 @@ def read_weights(config: EvalConfig) -> Weights:
     bytes (a trainer that replaces best.pt meanwhile changes nothing), and its sha256 is the
     evaluation's identity. The checkpoint's own record must name the method (config.json may be
     relabelled; the weights are what they are)."""
-    run_record = run_config(config.run)  # one read: the method's check and the identity's compare it
-    source = selected_checkpoint(config.run, config.method, config.checkpoint, run_record)
+    trained_config = run_config(config.run)  # one read: the method's check and the identity's compare
+    source = selected_checkpoint(config.run, config.method, config.checkpoint, trained_config)
     try:
         data = source.read_bytes()
     except OSError as e:
@@ -382,7 +382,7 @@ def read_weights(config: EvalConfig) -> Weights:
         )
     # a checkpoint is what it says it is: its own record of options, kitchens, seed and frames must
     # be the run's config.json's (+IL+TSE's weights in an LSTM A3C run share method and model)
-    differ = checkpoint_differences(record, run_record)
+    differ = checkpoint_differences(record, trained_config)
     if differ:
         raise EvalError(
             f"{source} is not the run its config.json describes: it differs in {'; '.join(differ[:4])}"
@@ -422,7 +422,7 @@ def run_config(run: str | Path) -> dict:
         raise EvalError(symbolic_link(directory / "config.json"))
     try:
         record = json.loads((directory / "config.json").read_text())
-    except (OSError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise EvalError(f"--run {directory} is not a training run (no readable config.json)") from e
     if not isinstance(record, dict):
         raise EvalError(f"--run {directory} is not a training run (its config.json is not a table)")

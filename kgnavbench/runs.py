@@ -231,8 +231,9 @@ def training_code_sha256(package: Path = Path(__file__).parent) -> str:
 
 @functools.cache
 def imported_training_code_sha256() -> str:
-    """`training_code_sha256` of this checkout, once per process: the code a process trains with is
-    the code it imported, whatever happens to the files afterwards."""
+    """`training_code_sha256` of this checkout, computed at a process's first run record and kept:
+    files edited while a process runs do not rename its runs (the CLI's commands are one process
+    each). In an interpreter that reloads edited training code, call `.cache_clear()`."""
     return training_code_sha256()
 
 

@@ -131,6 +131,14 @@ def paper_value(row: Row, cell: str, metric: str) -> float | None:
     return None if pair is None else pair[METRICS.index(metric)]
 
 
+def paper_difference(base: Row, other: Row, cell: str, metric: str) -> float | None:
+    """The paper's other - base in a cell, as printed (2 decimals; None where it lacks either)."""
+    paper_base, paper_other = paper_value(base, cell, metric), paper_value(other, cell, metric)
+    if paper_base is None or paper_other is None:
+        return None
+    return round(paper_other - paper_base, 2) + 0.0  # + 0.0: no "-0.00"
+
+
 def cell_statistics(row_result: RowResult, cell: str, reps: int = REPLICATES) -> dict[str, CellStatistics]:
     """A cell of a row, per metric: each seed's episode mean, and the mean over seeds with its 95%
     stratified bootstrap interval over the seeds that have episodes in the cell (all of them or none:
@@ -171,10 +179,7 @@ def table_statistics(result: TableResult, reps: int = REPLICATES) -> TableStatis
             for metric in METRICS:
                 paper_base = paper_value(rows[comparison.base], cell, metric)
                 paper_other = paper_value(rows[comparison.other], cell, metric)
-                paper_difference = None
-                if paper_base is not None and paper_other is not None:
-                    # as printed, to the paper's 2 decimals (+ 0.0: no "-0.00")
-                    paper_difference = round(paper_other - paper_base, 2) + 0.0
+                paper = paper_difference(rows[comparison.base], rows[comparison.other], cell, metric)
                 base = cells[(comparison.base, cell, metric)].bootstrap
                 other = cells[(comparison.other, cell, metric)].bootstrap
                 ours = difference(base, other) if base is not None and other is not None else None
@@ -185,9 +190,9 @@ def table_statistics(result: TableResult, reps: int = REPLICATES) -> TableStatis
                         metric,
                         paper_base,
                         paper_other,
-                        paper_difference,
+                        paper,
                         ours,
-                        verdict(paper_difference, ours.low, ours.high) if ours else None,
+                        verdict(paper, ours.low, ours.high) if ours else None,
                     )
                 )
     return TableStatistics(cells, comparisons)

@@ -10,9 +10,10 @@ import cv2
 import pytest
 import torch
 
-from kgnavbench.checkpoints import FIELDS, read_csv, replay, write_csv
+from kgnavbench.checkpoints import FIELDS, compared_at, read_csv, replay, write_csv
 from kgnavbench.cli import main
-from kgnavbench.table_spec import SPEC_FILE, TableError
+from kgnavbench.table_spec import CELL_KEYS, SPEC_FILE, TableError, load_spec
+from kgnavbench.table_statistics import EpisodeValue, RowResult, TableResult, table_statistics
 
 
 @pytest.fixture(scope="module")
@@ -152,3 +153,55 @@ def test_two_rows_are_compared_at_the_same_frames(trained, tmp_path, capsys):
         assert p["verdict"] in ("holds", "reversed", "cannot tell", "higher", "lower")
     image = cv2.imread(str(tmp_path / "c-matched.png"))
     assert image is not None and image.shape[1] > 600
+    # another pair's lines in the CSV are kept by a call that recomputes this one
+    matched_csv = tmp_path / "c-matched.csv"
+    other_pair = matched_csv.read_text().splitlines()[1].replace("LSTM A3C,+IL,", "+TSE,+IL+TSE,", 1)
+    matched_csv.write_text(matched_csv.read_text() + other_pair + "\n")
+    assert main([*argv, "--csv", str(out), "--matched"]) == 0
+    assert matched_csv.read_text().count("+TSE,+IL+TSE,") == 1
+    # --matched reads every finished seed: not with --seed or --unfinished
+    assert main([*argv, "--csv", str(out), "--matched", "--seed", "0"]) == 2
+    assert "not with --seed or --unfinished" in capsys.readouterr().err
+
+
+def test_a_matched_comparison_is_table_is_comparison_on_the_same_episodes():
+    """compared_at's interval is the one Table I's comparison gives for the same episodes (each row's
+    own bootstrap stream, differenced), with 3 and 2 seeds of made-up episodes."""
+    import random
+
+    spec = load_spec(SPEC_FILE)
+    rows = {row.name: row for row in spec.rows}
+    base, other = rows["+KG"], rows["+KG+Attention"]
+    rng = random.Random(0)
+
+    def seed_episodes(p: float) -> dict:
+        cells = {cell: [] for cell in CELL_KEYS}
+        for cell in ("seen_seen/static", "unseen_kitchens/static"):
+            for target in range(6):
+                for _ in range(4):
+                    success = 100.0 * (rng.random() < p)
+                    cells[cell].append(EpisodeValue(f"K/{target}", success, success * rng.random()))
+        return cells
+
+    base_seeds = [seed_episodes(0.3) for _ in range(3)]
+    other_seeds = [seed_episodes(0.6) for _ in range(2)]
+    lines = compared_at(base, base_seeds, other, other_seeds, 1000)
+    table = TableResult(
+        spec,
+        spec.preset("paper"),
+        [RowResult(base, base_seeds, [], [], 0.0), RowResult(other, other_seeds, [], [], 0.0)],
+        0.0,
+        "",
+    )
+    expected = {
+        (c.cell, c.metric): c
+        for c in table_statistics(table).comparisons
+        if (c.comparison.base, c.comparison.other) == ("+KG", "+KG+Attention") and c.ours is not None
+    }
+    assert {(x["cell"], x["metric"]) for x in lines} == set(expected) and len(lines) == 4
+    for x in lines:
+        want = expected[(x["cell"], x["metric"])]
+        assert (x["difference"], x["low"], x["high"]) == (want.ours.estimate, want.ours.low, want.ours.high)
+        assert x["verdict"] == want.verdict and (x["base_seeds"], x["other_seeds"]) == (3, 2)
+        paper = want.paper_difference
+        assert math.isnan(x["paper_difference"]) if paper is None else x["paper_difference"] == paper
