@@ -153,6 +153,22 @@ def merge_csv(path: Path, new: list[dict]) -> list[dict]:
     return lines
 
 
+def run_with_snapshots(preset, row, seed, runs_dir, device, progress, unfinished=False) -> Path | None:
+    """The finished run of one row and seed in `runs_dir` (`unfinished`: or the one still training),
+    if it kept snapshots; else None, with a line that names why."""
+    try:
+        run_dir = find_trained(
+            preset, row, seed, row_options(preset, row), runs_dir, device, lambda _line: None, unfinished
+        )
+    except TableError as e:
+        progress(f"skipped: {e}")
+        return None
+    if not snapshot_frames(run_dir):
+        progress(f"skipped: {run_dir} kept no snapshot (trained without keep_every)")
+        return None
+    return run_dir
+
+
 def evidence(
     spec: TableSpec,
     preset_name: str,
@@ -191,22 +207,8 @@ def evidence(
         for seed in range(preset.seeds):
             if seeds and seed not in seeds:
                 continue
-            try:
-                run_dir = find_trained(
-                    preset,
-                    row,
-                    seed,
-                    row_options(preset, row),
-                    runs_dir,
-                    device,
-                    lambda _line: None,
-                    unfinished,
-                )
-            except TableError as e:
-                progress(f"skipped: {e}")
-                continue
-            if not snapshot_frames(run_dir):
-                progress(f"skipped: {run_dir} kept no snapshot (trained without keep_every)")
+            run_dir = run_with_snapshots(preset, row, seed, runs_dir, device, progress, unfinished)
+            if run_dir is None:
                 continue
             finished = (run_dir / "finished.json").exists()
             out = csv_path if finished else None  # an unfinished run's lines wait for its end
@@ -269,19 +271,12 @@ def matched(
             snapshots[name] = []
             row = trained[name]
             for seed in range(preset.seeds):
-                try:
-                    run_dir = find_trained(
-                        preset, row, seed, row_options(preset, row), runs_dir, device, lambda _line: None
-                    )
-                except TableError as e:
-                    progress(f"skipped: {e}")
+                run_dir = run_with_snapshots(preset, row, seed, runs_dir, device, progress)
+                if run_dir is None:
                     continue
                 got = _snapshot_episodes(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device)
-                if got:
-                    progress(f"{name} seed {seed}: {len(got)} snapshots ({run_dir.name})")
-                    snapshots[name].append(got)
-                else:
-                    progress(f"skipped: {run_dir} kept no snapshot (trained without keep_every)")
+                progress(f"{name} seed {seed}: {len(got)} snapshots ({run_dir.name})")
+                snapshots[name].append(got)
         return snapshots[name]
 
     lines = []
