@@ -96,6 +96,16 @@ def _checkpoint_frames(path: Path) -> int | None:
     return int(load_checkpoint(path)["frames"]) if path.is_file() else None
 
 
+def snapshot_evaluations(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device):
+    """(frames, evaluation) for each snapshot a run kept, in order of frames, each evaluated on the
+    table's fixed episodes (`episodes` per target) or read back from runs_dir/eval where it was."""
+    preset = spec.preset(preset_name)
+    options = row_options(preset, row)
+    for frames in snapshot_frames(run_dir):
+        config = eval_config(spec, preset, row, seed, options, run_dir, device, f"frames-{frames}", episodes)
+        yield frames, evaluate(config, runs_dir, progress=lambda _line: None)
+
+
 def run_lines(
     spec: TableSpec,
     preset_name: str,
@@ -110,14 +120,11 @@ def run_lines(
 ) -> list[dict]:
     """One CSV line per snapshot of one finished run (evaluations are kept in runs_dir/eval and
     resume, as every evaluation does); with `csv_path`, each line is merged into it as it comes."""
-    preset = spec.preset(preset_name)
-    options = row_options(preset, row)
     validation = validation_at(run_dir)
     best, last = _checkpoint_frames(run_dir / "best.pt"), _checkpoint_frames(run_dir / "last.pt")
     lines = []
-    for frames in snapshot_frames(run_dir):
-        config = eval_config(spec, preset, row, seed, options, run_dir, device, f"frames-{frames}", episodes)
-        result = evaluate(config, runs_dir, progress=lambda _line: None)
+    evaluations = snapshot_evaluations(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device)
+    for frames, result in evaluations:
         val_sr, val_episodes = validation.get(frames, (math.nan, 0))
         line = {
             "row": row.name,
@@ -235,13 +242,8 @@ MATCHED_FIELDS = (
 def _snapshot_episodes(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device) -> dict:
     """{frames: that snapshot's episodes per cell} for one finished run (its evaluations resume: the
     snapshots `evidence` evaluated are read, not run again; one not yet evaluated is evaluated)."""
-    preset = spec.preset(preset_name)
-    options = row_options(preset, row)
-    out = {}
-    for frames in snapshot_frames(run_dir):
-        config = eval_config(spec, preset, row, seed, options, run_dir, device, f"frames-{frames}", episodes)
-        out[frames] = cell_episodes(evaluate(config, runs_dir, progress=lambda _line: None).results)
-    return out
+    evaluations = snapshot_evaluations(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device)
+    return {frames: cell_episodes(result.results) for frames, result in evaluations}
 
 
 def matched(
