@@ -65,9 +65,13 @@ def record_differences(config: dict, record: dict) -> list[str]:
 def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfinished: bool = False) -> Path:
     """The finished run in `folder` (its run folders, or those of its train/) whose config matches
     `record` (`run_record`) on TRAINED_RUN_KEYS (`unfinished`: or the run still training). Trained by
-    other code than this checkout's, it is used with a line that says from which revision."""
+    other code than this checkout's, it is used with a line that says from which revision. Where
+    several runs match (a job trained again by newer code beside the old run), the one this
+    checkout's training code trained is used; failing that, they are named and none is used, rather
+    than one picked by folder name."""
     want = {key: record[key] for key in TRAINED_RUN_KEYS}
     nearest: tuple[int, str] | None = None  # (keys that differ, which) of the closest run, for the error
+    matches: list[tuple[Path, dict]] = []
     candidates = sorted(
         path
         for path in {*folder.glob("*/config.json"), *folder.glob("train/*/config.json")}
@@ -85,21 +89,33 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfin
             if nearest is None or len(differ) < nearest[0]:
                 nearest = (len(differ), f"{config_path.parent} differs in {', '.join(differ[:6])}")
             continue
-        run_dir = config_path.parent
-        if not (run_dir / "finished.json").exists() and not unfinished:
-            raise TableError(f"row {row_name!r} (seed {record['seed']}): {run_dir} is not finished")
-        if config.get("training_code_sha256") != record["training_code_sha256"]:
-            revision = one_line(str(config.get("git_revision", "?")))[:12]
-            progress(
-                f"{run_dir}: trained by the code of revision {revision}, not this checkout's training "
-                "code; used as shipped"
-            )
-        return run_dir
-    hint = f"; the closest, {nearest[1]}" if nearest else ""
-    raise TableError(
-        f"row {row_name!r} (seed {record['seed']}): no finished {record['method']} run in {folder} "
-        f"trained as the preset says{hint}"
-    )
+        matches.append((config_path.parent, config))
+    if not matches:
+        hint = f"; the closest, {nearest[1]}" if nearest else ""
+        raise TableError(
+            f"row {row_name!r} (seed {record['seed']}): no finished {record['method']} run in {folder} "
+            f"trained as the preset says{hint}"
+        )
+    ours = [m for m in matches if m[1].get("training_code_sha256") == record["training_code_sha256"]]
+    if len(matches) > 1 and len(ours) != 1:
+        named = "; ".join(
+            f"{run_dir} (revision {one_line(str(config.get('git_revision', '?')))[:12]})"
+            for run_dir, config in matches
+        )
+        raise TableError(
+            f"row {row_name!r} (seed {record['seed']}): {len(matches)} runs in {folder} trained this job: "
+            f"{named}; remove the superseded one(s)"
+        )
+    run_dir, config = ours[0] if len(matches) > 1 else matches[0]
+    if not (run_dir / "finished.json").exists() and not unfinished:
+        raise TableError(f"row {row_name!r} (seed {record['seed']}): {run_dir} is not finished")
+    if config.get("training_code_sha256") != record["training_code_sha256"]:
+        revision = one_line(str(config.get("git_revision", "?")))[:12]
+        progress(
+            f"{run_dir}: trained by the code of revision {revision}, not this checkout's training "
+            "code; used as shipped"
+        )
+    return run_dir
 
 
 # a training run's folder: METHOD-HASH as `runs.run_directory` names it (printable ASCII only)

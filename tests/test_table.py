@@ -661,6 +661,24 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and named in err, err
 
+    # the same job trained twice (again by newer code, the old run left beside it): the one this
+    # checkout's code trained is used; two of older code are named, neither picked by folder name
+    twin = zoo / (run.name[:-10] + "f" * 10)
+    shutil.copytree(run, twin)
+    config = json.loads((twin / "config.json").read_text())
+    config["git_revision"] = "fedcba9876543210"
+    (twin / "config.json").write_text(json.dumps(config))
+    assert main(smoke + from_zoo + ["--row", "LSTM A3C"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "2 runs in" in err and "remove the superseded" in err, err
+    assert "revision fedcba987654" in err and "revision 0123456789ab" in err
+    ours = json.loads(next((trained / "train").glob("*/config.json")).read_text())["training_code_sha256"]
+    config["training_code_sha256"] = ours
+    (twin / "config.json").write_text(json.dumps(config))
+    assert main(smoke + from_zoo + ["--row", "LSTM A3C"]) == 0
+    assert "used as shipped" not in capsys.readouterr().out  # the twin, trained by this checkout's code
+    shutil.rmtree(twin)
+
     # a run missing from the zoo, or trained with other options: one line, nothing trained
     missing = run
     config = json.loads((missing / "config.json").read_text())
