@@ -438,7 +438,7 @@ def cmd_table(args: argparse.Namespace) -> int:
 def cmd_ship(args: argparse.Namespace) -> int:
     from .jobs import write_zoo_listing
     from .table_spec import SPEC_FILE, load_spec
-    from .zoo import ship_run
+    from .zoo import same_job_runs, ship_run
 
     arguments.writable_folder(args.zoo, "--zoo")
     try:
@@ -456,6 +456,11 @@ def cmd_ship(args: argparse.Namespace) -> int:
         print(
             f"{shipped.folder.name}: {shipped.method} seed {shipped.seed}, {shipped.frames:,} frames "
             f"(best.pt from {shipped.best_frames:,}); {args.zoo / 'README.md'} has no listing to rewrite"
+        )
+    for old in same_job_runs(args.zoo, shipped.folder):  # never removed here: saved data stays
+        print(
+            f"{old} trained the same job: `table --trained` takes the one this checkout's code trained, "
+            f"or refuses both; remove the superseded one (git rm -r {old})"
         )
     return 0
 

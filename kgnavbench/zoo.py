@@ -118,6 +118,25 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfin
     return run_dir
 
 
+def same_job_runs(zoo: Path, run_dir: Path) -> list[Path]:
+    """The other run folders in `zoo` that trained the same job as `run_dir` (equal on
+    TRAINED_RUN_KEYS, whatever code trained them): what a retrained run supersedes."""
+    config = json.loads((run_dir / "config.json").read_text())
+    want = {key: config.get(key) for key in TRAINED_RUN_KEYS}
+    out = []
+    for other in sorted(zoo.glob("*/config.json")):
+        if other.parent == run_dir or other.parent.name.startswith("."):
+            continue
+        try:
+            theirs = json.loads(other.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            continue
+        same_method = isinstance(theirs, dict) and theirs.get("method") == want["method"]
+        if same_method and not record_differences(theirs, want):
+            out.append(other.parent)
+    return out
+
+
 # a training run's folder: METHOD-HASH as `runs.run_directory` names it (printable ASCII only)
 RUN_FOLDER = re.compile(r"[A-Za-z0-9_+][A-Za-z0-9_.+-]*-[0-9a-f]{10}")
 # finished.json last: a staging folder left by a killed ship is never a finished run

@@ -33,6 +33,7 @@ from kgnavbench.table_spec import (
     parse_spec,
 )
 from kgnavbench.table_statistics import EpisodeValue, RowResult, TableResult, cell_episodes
+from kgnavbench.zoo import same_job_runs
 
 PAPER_ROWS = ["Random walk", "IL", "LSTM A3C", "FF A3C", "+IL", "+TSE", "+IL+TSE", "+KG", "+KG+Attention"]
 
@@ -668,6 +669,7 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     config = json.loads((twin / "config.json").read_text())
     config["git_revision"] = "fedcba9876543210"
     (twin / "config.json").write_text(json.dumps(config))
+    assert same_job_runs(zoo, twin) == [run] and same_job_runs(zoo, run) == [twin]  # as `ship` names it
     assert main(smoke + from_zoo + ["--row", "LSTM A3C"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "2 runs in" in err and "remove the superseded" in err, err

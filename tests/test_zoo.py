@@ -1,6 +1,6 @@
 """The committed zoo/ is whole: every shipped run loads with its checksum, its best.pt is the
 checkpoint Table I's rule picks from its own metrics.csv, zoo/README.md lists exactly the folders
-there, and the whole zoo stays under the 80 MB the repository allows it."""
+there, each job once, and the whole zoo stays under the 80 MB the repository allows it."""
 
 import csv
 import json
@@ -13,6 +13,7 @@ from kgnavbench import jobs, runs
 from kgnavbench.intervals import within_one_standard_error
 from kgnavbench.table_spec import SPEC_FILE, load_spec
 from kgnavbench.train import BEST_RULE
+from kgnavbench.zoo import same_job_runs
 
 ZOO = Path(__file__).resolve().parents[1] / "zoo"
 SHIPPED = sorted(p for p in ZOO.iterdir() if p.is_dir() and not p.name.startswith("."))
@@ -26,6 +27,8 @@ def test_the_zoos_readme_lists_what_its_folders_give_and_it_is_under_80_mb():
     assert listing == jobs.zoo_listing(ZOO, load_spec(SPEC_FILE))
     listed = re.findall(r"^\| `([a-z0-9_]+-[0-9a-f]{10})` \|", listing, re.M)
     assert sorted(listed) == [p.name for p in SHIPPED]
+    # each job once: a retrained run's superseded one is removed, so that the zoo is what tables use
+    assert not [(run.name, other.name) for run in SHIPPED for other in same_job_runs(ZOO, run)]
     size = sum(f.stat().st_size for f in ZOO.rglob("*") if f.is_file())
     assert size < 80e6, f"zoo/ is {size / 1e6:.1f} MB"
 
