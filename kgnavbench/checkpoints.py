@@ -450,7 +450,30 @@ FIGURE_SERIES = (  # (CSV cell, legend): the static targets' columns, as Table I
     ("unseen_kitchens_static_sr", "unseen kitchens"),
 )
 PANEL_SIZE = (760, 420)
+# the figure's snapshots of one schedule are drawn as one point: a snapshot is kept at the first update
+# past each multiple of keep_every, so its frames differ by seed (by up to an update's frames: IL's
+# episodes end where they end) but stay millions apart from the next snapshot's
+FIGURE_FRAMES_GRID = 100_000
 PANELS_PER_LINE = 3
+
+
+def row_curves(lines: list[dict]) -> dict[str, tuple[list[float], list[float]]]:
+    """One row's curves for the figure: per FIGURE_SERIES legend, (frames in millions, SR %), the mean
+    over the seeds' snapshots at each point of the grid (FIGURE_FRAMES_GRID; x: their mean frames)."""
+    points: dict[int, list[dict]] = {}  # the grid's point -> the seeds' snapshots there
+    for x in lines:
+        points.setdefault(round(x["frames"] / FIGURE_FRAMES_GRID), []).append(x)
+    at = [points[k] for k in sorted(points)]
+    xs = [sum(x["frames"] for x in group) / len(group) / 1e6 for group in at]
+    series = {}
+    for key, legend in FIGURE_SERIES:
+        ys = []
+        for group in at:
+            values = [x[key] for x in group if not math.isnan(x.get(key, math.nan))]
+            ys.append(sum(values) / len(values) if values else math.nan)
+        if any(math.isfinite(y) for y in ys):
+            series[legend] = (xs, ys)
+    return series
 
 
 def figure(lines: list[dict], path: Path, row_order: list[str] | None = None) -> Path:
@@ -463,15 +486,7 @@ def figure(lines: list[dict], path: Path, row_order: list[str] | None = None) ->
     panels = []
     for name in names:
         mine = [x for x in lines if x["row"] == name]
-        frames = sorted({x["frames"] for x in mine})
-        series = {}
-        for key, legend in FIGURE_SERIES:
-            ys = []
-            for f in frames:
-                values = [x[key] for x in mine if x["frames"] == f and not math.isnan(x.get(key, math.nan))]
-                ys.append(sum(values) / len(values) if values else math.nan)
-            if any(math.isfinite(y) for y in ys):
-                series[legend] = ([f / 1e6 for f in frames], ys)
+        series = row_curves(mine)
         seeds = len({x["seed"] for x in mine})
         title = f"{name} ({seeds} seed{'s' if seeds != 1 else ''})"
         panels.append(curves_image(series, title, "frames (M)", "SR (%)", PANEL_SIZE, (0,), (0, 100)))

@@ -10,7 +10,7 @@ import cv2
 import pytest
 import torch
 
-from kgnavbench.checkpoints import FIELDS, compared_at, read_csv, replay, write_csv
+from kgnavbench.checkpoints import FIELDS, compared_at, read_csv, replay, row_curves, write_csv
 from kgnavbench.cli import main
 from kgnavbench.table_spec import CELL_KEYS, SPEC_FILE, TableError, load_spec
 from kgnavbench.table_statistics import EpisodeValue, RowResult, TableResult, table_statistics
@@ -95,6 +95,25 @@ def test_other_runs_lines_are_kept_and_a_bad_csv_is_named(tmp_path):
     path.write_text("a,b\n1,2\n")
     with pytest.raises(TableError, match="not a checkpoints CSV"):
         read_csv(path)
+
+
+def test_the_figure_draws_one_point_per_snapshot_of_the_schedule():
+    """Seeds whose snapshots came at other frames (IL: an update ends where its episodes end) make one
+    point per snapshot of the schedule, their mean, not one point per seed."""
+    line = {key: math.nan for key in FIELDS} | {"row": "IL", "run": "imitation-0123456789"}
+    lines = [
+        line | {"seed": seed, "frames": frames, "seen_seen_static_sr": sr}
+        for seed, frames, sr in (
+            (0, 2_500_354, 4.0),
+            (1, 2_500_237, 6.0),
+            (0, 5_000_174, 3.0),
+            (1, 5_000_800, 5.0),
+        )
+    ]
+    curves = row_curves(lines)
+    assert list(curves) == ["seen kitchens, seen targets"]  # columns without a value are not drawn
+    xs, ys = curves["seen kitchens, seen targets"]
+    assert xs == pytest.approx([2.5002955, 5.000487]) and ys == [5.0, 4.0]
 
 
 def test_an_unknown_row_is_refused_by_name(trained, capsys):
