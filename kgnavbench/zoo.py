@@ -72,6 +72,44 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfin
     want = {key: record[key] for key in TRAINED_RUN_KEYS}
     nearest: tuple[int, str] | None = None  # (keys that differ, which) of the closest run, for the error
     matches: list[tuple[Path, dict]] = []
+    for run_dir, config in _run_configs(folder, record["method"]):
+        differ = record_differences(config, want)
+        if differ:
+            if nearest is None or len(differ) < nearest[0]:
+                nearest = (len(differ), f"{run_dir} differs in {', '.join(differ[:6])}")
+            continue
+        matches.append((run_dir, config))
+    if not matches:
+        hint = f"; the closest, {nearest[1]}" if nearest else ""
+        raise TableError(
+            f"row {row_name!r} (seed {record['seed']}): no finished {record['method']} run in {folder} "
+            f"trained as the preset says{hint}"
+        )
+    ours = [m for m in matches if m[1].get("training_code_sha256") == record["training_code_sha256"]]
+    if len(matches) > 1 and len(ours) != 1:
+        named = "; ".join(f"{run_dir} (revision {_revision(config)})" for run_dir, config in matches)
+        raise TableError(
+            f"row {row_name!r} (seed {record['seed']}): {len(matches)} runs in {folder} trained this job: "
+            f"{named}; remove the superseded one(s)"
+        )
+    run_dir, config = ours[0] if len(matches) > 1 else matches[0]
+    if not (run_dir / "finished.json").exists() and not unfinished:
+        raise TableError(f"row {row_name!r} (seed {record['seed']}): {run_dir} is not finished")
+    if config.get("training_code_sha256") != record["training_code_sha256"]:
+        progress(
+            f"{run_dir}: trained by the code of revision {_revision(config)}, not this checkout's training "
+            "code; used as shipped"
+        )
+    return run_dir
+
+
+def _revision(config: dict) -> str:
+    return one_line(str(config.get("git_revision", "?")))[:12]
+
+
+def _run_configs(folder: Path, method: str):
+    """(run folder, its config) for each run of `method` in `folder` (its run folders, or those of its
+    train/) whose config.json reads as a dict, in order of path."""
     candidates = sorted(
         path
         for path in {*folder.glob("*/config.json"), *folder.glob("train/*/config.json")}
@@ -82,40 +120,8 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfin
             config = json.loads(config_path.read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError):
             continue  # not a run's config: nothing to match
-        if not isinstance(config, dict) or config.get("method") != record["method"]:
-            continue
-        differ = record_differences(config, want)
-        if differ:
-            if nearest is None or len(differ) < nearest[0]:
-                nearest = (len(differ), f"{config_path.parent} differs in {', '.join(differ[:6])}")
-            continue
-        matches.append((config_path.parent, config))
-    if not matches:
-        hint = f"; the closest, {nearest[1]}" if nearest else ""
-        raise TableError(
-            f"row {row_name!r} (seed {record['seed']}): no finished {record['method']} run in {folder} "
-            f"trained as the preset says{hint}"
-        )
-    ours = [m for m in matches if m[1].get("training_code_sha256") == record["training_code_sha256"]]
-    if len(matches) > 1 and len(ours) != 1:
-        named = "; ".join(
-            f"{run_dir} (revision {one_line(str(config.get('git_revision', '?')))[:12]})"
-            for run_dir, config in matches
-        )
-        raise TableError(
-            f"row {row_name!r} (seed {record['seed']}): {len(matches)} runs in {folder} trained this job: "
-            f"{named}; remove the superseded one(s)"
-        )
-    run_dir, config = ours[0] if len(matches) > 1 else matches[0]
-    if not (run_dir / "finished.json").exists() and not unfinished:
-        raise TableError(f"row {row_name!r} (seed {record['seed']}): {run_dir} is not finished")
-    if config.get("training_code_sha256") != record["training_code_sha256"]:
-        revision = one_line(str(config.get("git_revision", "?")))[:12]
-        progress(
-            f"{run_dir}: trained by the code of revision {revision}, not this checkout's training "
-            "code; used as shipped"
-        )
-    return run_dir
+        if isinstance(config, dict) and config.get("method") == method:
+            yield config_path.parent, config
 
 
 def same_job_runs(zoo: Path, run_dir: Path) -> list[Path]:
@@ -123,18 +129,11 @@ def same_job_runs(zoo: Path, run_dir: Path) -> list[Path]:
     TRAINED_RUN_KEYS, whatever code trained them): what a retrained run supersedes."""
     config = json.loads((run_dir / "config.json").read_text())
     want = {key: config.get(key) for key in TRAINED_RUN_KEYS}
-    out = []
-    for other in sorted(zoo.glob("*/config.json")):
-        if other.parent == run_dir or other.parent.name.startswith("."):
-            continue
-        try:
-            theirs = json.loads(other.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-            continue
-        same_method = isinstance(theirs, dict) and theirs.get("method") == want["method"]
-        if same_method and not record_differences(theirs, want):
-            out.append(other.parent)
-    return out
+    return [
+        other
+        for other, theirs in _run_configs(zoo, want["method"])
+        if other != run_dir and not record_differences(theirs, want)
+    ]
 
 
 # a training run's folder: METHOD-HASH as `runs.run_directory` names it (printable ASCII only)
