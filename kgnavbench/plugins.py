@@ -175,18 +175,14 @@ def watched(source: str, what: str, where: str = "", limit: float | None = None,
 
     previous = signal.signal(signal.SIGALRM, alarm)
     callers_timer = signal.setitimer(signal.ITIMER_REAL, _next_alarm(0.0, limit, note))
-    returned = threading.Event()
-    if limit is not None:
-        watchdog = threading.Thread(
-            target=_watchdog, args=(returned, limit + WATCHDOG_GRACE, message), daemon=True
-        )
-        watchdog.start()
+    watching = _WATCHDOG.watch(limit + WATCHDOG_GRACE, message) if limit is not None else None
     try:
         yield
         if timed_out:  # the plugin caught the PluginTimeout and returned anyway
             raise PluginTimeout(message)
     finally:
-        returned.set()
+        if limit is not None:
+            _WATCHDOG.release(watching)
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
         remaining, interval = callers_timer
@@ -197,19 +193,62 @@ def watched(source: str, what: str, where: str = "", limit: float | None = None,
 WATCHDOG_GRACE = 5.0  # seconds past a step's limit before the process is ended (the signal did not work)
 
 
-def _watchdog(returned: threading.Event, seconds: float, message: str) -> None:
-    """End the process if the watched block has not returned within `seconds`: its plugin code
-    defeated the time-out (caught PluginTimeout and went on, or ignored SIGALRM). Nothing else can stop
-    Python code running in the main thread."""
-    if returned.wait(seconds):
-        return
-    print(
-        f"kgnavbench: error: {message}, and it defeated the time-out (caught it or ignored SIGALRM): "
-        "the process ends here",
-        file=sys.stderr,
-        flush=True,
-    )
-    os._exit(2)
+class _Watchdog:
+    """Ends the process if a watched block has not returned by its deadline: its plugin code defeated
+    the time-out (caught PluginTimeout and went on, or ignored SIGALRM). Nothing else can stop Python
+    code running in the main thread. One daemon thread serves every block, started at the first: a
+    thread per block would cost one thread per plugin call under `--step-timeout`."""
+
+    def __init__(self):
+        self.changed = threading.Condition()
+        self.deadline: tuple[float, str] | None = None  # (time.monotonic() due, message) of the block
+        self.thread: threading.Thread | None = None
+
+    def watch(self, seconds: float, message: str):
+        """Watch a block for `seconds` from now; returns what `release` restores (an enclosing block's)."""
+        with self.changed:
+            enclosing, self.deadline = self.deadline, (time.monotonic() + seconds, message)
+            if self.thread is None or not self.thread.is_alive():
+                self.thread = threading.Thread(target=self.run, name="kgnavbench-watchdog", daemon=True)
+                self.thread.start()
+            self.changed.notify()
+        return enclosing
+
+    def release(self, enclosing) -> None:
+        with self.changed:
+            self.deadline = enclosing
+            self.changed.notify()
+
+    def run(self) -> None:
+        with self.changed:
+            while True:
+                if self.deadline is None:
+                    self.changed.wait()
+                    continue
+                due, message = self.deadline
+                if time.monotonic() < due:
+                    self.changed.wait(due - time.monotonic())
+                    continue
+                print(
+                    f"kgnavbench: error: {message}, and it defeated the time-out (caught it or ignored "
+                    "SIGALRM): the process ends here",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                os._exit(2)
+
+
+_WATCHDOG = _Watchdog()
+
+
+def _new_watchdog_after_fork() -> None:
+    """A forked worker gets its own watchdog: the parent's thread is not in it, and its lock may have
+    been held at the fork."""
+    global _WATCHDOG
+    _WATCHDOG = _Watchdog()
+
+
+os.register_at_fork(after_in_child=_new_watchdog_after_fork)
 
 
 def _next_alarm(waited: float, limit: float | None, note: float) -> float:

@@ -607,6 +607,26 @@ def test_a_plugin_that_defeats_the_time_out_ends_the_process_with_one_line(defea
     assert time.monotonic() - t0 < 20
 
 
+def test_one_watchdog_thread_serves_every_watched_call_and_nested_blocks_keep_their_deadlines():
+    """Under --step-timeout every plugin call is watched: one thread for all of them, not one each; an
+    inner block's release gives the enclosing block its own deadline back."""
+    import threading
+
+    from kgnavbench import plugins
+
+    with plugins.watched("a.py", "act()", limit=30.0):
+        threads = threading.active_count()
+        watchdog = plugins._WATCHDOG.thread
+        outer = plugins._WATCHDOG.deadline
+        for _ in range(50):
+            with plugins.watched("a.py", "act()", limit=30.0):
+                pass
+        assert threading.active_count() == threads
+        assert plugins._WATCHDOG.thread is watchdog and watchdog.is_alive()
+        assert plugins._WATCHDOG.deadline == outer
+    assert plugins._WATCHDOG.deadline is None
+
+
 def test_watching_plugin_code_restores_the_callers_timer_and_handler():
     """A caller's own ITIMER_REAL timer and SIGALRM handler survive a watched call (evaluate_policy's
     callers may have one)."""
