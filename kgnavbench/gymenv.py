@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import Env, spaces
 
-from .env import MAX_EPISODE_STEPS, TRAINING_MAX_STEPS, _is_integer, checked_seed
-from .vecenv import RENDER_FPS, Navigation, VecEnvError, observation_space, positive_int
+from .env import MAX_EPISODE_STEPS, TRAINING_MAX_STEPS, _is_integer, checked_seed, whole_number_in
+from .vecenv import RENDER_FPS, Navigation, VecEnvError, observation_space
 from .world import ACTIONS
 
 GYM_RESET_OPTIONS = ("target", "start", "max_steps", "reach")
@@ -66,7 +66,7 @@ class NavigationGymEnv(Navigation, Env):
             raise VecEnvError(f"unknown reset options {unknown}; known: {', '.join(GYM_RESET_OPTIONS)}")
         cap = self.max_steps
         if "max_steps" in options:
-            cap = positive_int(options["max_steps"], "max_steps", MAX_EPISODE_STEPS)
+            cap = whole_number_in(options["max_steps"], "max_steps", 1, MAX_EPISODE_STEPS, VecEnvError)
         nav, sp = self.navigators, self.space
         if "target" in options:
             if "reach" in options:

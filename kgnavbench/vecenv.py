@@ -419,10 +419,6 @@ def observation_space(
 MAX_ENVS = 4096
 
 
-def positive_int(value, name: str, most: int) -> int:
-    return whole_number_in(value, name, 1, most, VecEnvError)
-
-
 class Navigation:
     """What both faces share: the space, the navigators, the observation gathers, the infos, the
     curriculum and the spec (`spec.max_episode_steps` is the env's max_steps)."""
@@ -477,7 +473,7 @@ class Navigation:
         self._use(navigators, max_steps, views, observation)
 
     def _use(self, navigators: Navigators, max_steps, views: bool, observation: str = "dict") -> None:
-        max_steps = positive_int(max_steps, "max_steps", MAX_EPISODE_STEPS)
+        max_steps = whole_number_in(max_steps, "max_steps", 1, MAX_EPISODE_STEPS, VecEnvError)
         if views and navigators.space.views is None:
             raise VecEnvError("views=True needs a state space built with its views (pixels=True)")
         self.space, self.navigators = navigators.space, navigators
@@ -570,7 +566,7 @@ class NavigationVectorEnv(Navigation, VectorEnv):
         observation: str = "dict",
         render_mode: str | None = None,
     ):
-        num_envs = positive_int(num_envs, "num_envs", MAX_ENVS)
+        num_envs = whole_number_in(num_envs, "num_envs", 1, MAX_ENVS, VecEnvError)
         if render_mode not in (None, "rgb_array"):
             raise VecEnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
         self.render_mode = render_mode
