@@ -32,16 +32,16 @@ from __future__ import annotations
 import argparse
 import csv
 import math
-import re
 import time
 from pathlib import Path
 
 import torch
 
 from kgnavbench.arguments import frames as frame_count  # the CLI's parser: 10M, 500k, 2_000_000
+from kgnavbench.checkpoints import snapshot_frames, validation_at
 from kgnavbench.evaluate import EvalConfig, evaluate
 from kgnavbench.plots import curves_figure
-from kgnavbench.runs import train_method
+from kgnavbench.runs import load_checkpoint, train_method
 from kgnavbench.table_spec import TableError, load_spec
 
 COLUMNS = (
@@ -133,15 +133,11 @@ def main() -> None:
 
 def curve(name, method, options, seed, directory: Path, episodes: int, runs: Path, kitchens=()) -> list[dict]:
     """One point per snapshot (then best and last) of a trained run."""
-    val = validation_sr(directory)
-    snapshots = sorted(
-        (int(m.group(1)), p.stem)
-        for p in (directory / "snapshots").glob("frames-*.pt")
-        if (m := re.fullmatch(r"frames-(\d+)", p.stem))
-    )
-    with open(directory / "metrics.csv", newline="") as f:
-        final = max((int(row["frames"]) for row in csv.DictReader(f)), default=0)
-    checkpoints = [*snapshots, (best_frames(directory), "best"), (final, "last")]
+    # the run read as `kgnavbench checkpoints` reads it: its snapshots, validation SR and checkpoints' frames
+    val = {frames: f"{sr:.2f}" for frames, (sr, _episodes) in validation_at(directory).items()}
+    snapshots = [(frames, f"frames-{frames}") for frames in snapshot_frames(directory)]
+    best, last = (int(load_checkpoint(directory / f"{which}.pt")["frames"]) for which in ("best", "last"))
+    checkpoints = [*snapshots, (best, "best"), (last, "last")]
     out = []
     for at, which in checkpoints:
         start = time.perf_counter()
@@ -166,18 +162,6 @@ def curve(name, method, options, seed, directory: Path, episodes: int, runs: Pat
         print(f"{name} (seed {seed}) {which} at {at:,} frames: {point} ({time.perf_counter() - start:.0f} s)")
         out.append(point)
     return out
-
-
-def validation_sr(directory: Path) -> dict[int, str]:
-    """The run's validation SR by frames (metrics.csv's rows that validated)."""
-    with open(directory / "metrics.csv", newline="") as f:
-        return {int(r["frames"]): r["val_sr"] for r in csv.DictReader(f) if r.get("val_sr")}
-
-
-def best_frames(directory: Path) -> int:
-    """The frames of the run's best.pt (Table I's checkpoint rule)."""
-    ck = torch.load(directory / "best.pt", map_location="cpu", weights_only=True)
-    return int(ck["frames"])
 
 
 def figure(points: list[dict], paper: dict, path: Path, preset: str, overrides: dict) -> None:
