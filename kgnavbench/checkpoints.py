@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import math
 from pathlib import Path
 
@@ -69,6 +70,22 @@ def evaluating_preset(spec: TableSpec, name: str):
             "rule; read the snapshots under the preset that evaluates them"
         )
     return preset
+
+
+def snapshot_points(seeds: list[list[int]]) -> dict[int, int]:
+    """{frames: point} over the snapshots of several seeds (their frames, one list each), numbered in
+    order: the seeds' snapshots of one schedule are one point. A snapshot is kept at the first update
+    past each multiple of keep_every, so seeds keep it at other frames (by up to an update's frames:
+    IL's episodes end where they end), while one seed's own snapshots stay keep_every apart: frames
+    closer than half the closest two snapshots of one seed are one point."""
+    gaps = [b - a for frames in seeds for a, b in itertools.pairwise(sorted(frames))]
+    reach = min(gaps) / 2 if gaps else math.inf
+    points, first, point = {}, -math.inf, -1
+    for frames in sorted({f for seed in seeds for f in seed}):
+        if frames - first >= reach:
+            first, point = frames, point + 1
+        points[frames] = point
+    return points
 
 
 def snapshot_frames(run_dir: Path) -> list[int]:
@@ -256,13 +273,14 @@ def matched(
     progress=print,
 ) -> list[dict]:
     """For each comparison of the spec whose two rows the preset trains (with `rows`: those that
-    involve one of them), other - base at every frame count where every finished seed of both rows
-    kept a snapshot, per cell and metric: the mean over seeds with its 95% interval and verdict,
-    computed as Table I's comparisons are (each row's stratified bootstrap over seeds and episodes, in
-    the row's and cell's own stream, differenced), on the snapshot evaluations' episodes (`episodes`
-    per target: wider intervals than the table's 100). base_seeds and other_seeds count the seeds
-    used; a seed without a finished run, and a frame count some seed lacks, are named and left out.
-    The intervals are each valid on their own; frames share streams, so they are no joint band."""
+    involve one of them), other - base at every snapshot (`snapshot_points`; frames: the seeds' mean)
+    where every finished seed of both rows kept a snapshot, per cell and metric: the mean over seeds
+    with its 95% interval and verdict, computed as Table I's comparisons are (each row's stratified
+    bootstrap over seeds and episodes, in the row's and cell's own stream, differenced), on the
+    snapshot evaluations' episodes (`episodes` per target: wider intervals than the table's 100).
+    base_seeds and other_seeds count the seeds used; a seed without a finished run, and a snapshot
+    some seed lacks, are named and left out. The intervals are each valid on their own; frames share
+    streams, so they are no joint band."""
     torch.set_num_threads(1)  # as `evidence`: a snapshot's batches are too small to share
     preset = evaluating_preset(spec, preset_name)
     trained = {row.name: row for row in preset_rows(spec, preset) if trains(row)}
@@ -292,18 +310,21 @@ def matched(
             missing = comparison.base if not base else comparison.other
             progress(f"skipped: {label}: {missing} has no finished run with snapshots in {runs_dir}")
             continue
-        kept = [set(seed_snapshots) for seed_snapshots in base + other]
-        common, every = set.intersection(*kept), set.union(*kept)
-        if every - common:
-            lost = ", ".join(f"{f:,}" for f in sorted(every - common))
-            progress(f"{label}: frames {lost} left out (not every seed kept a snapshot there)")
-        for frames in sorted(common):
+        point_of = snapshot_points([list(seed) for seed in base + other])
+        by_point = [{point_of[f]: (f, cells) for f, cells in seed.items()} for seed in base + other]
+        common = set.intersection(*map(set, by_point))
+        lost = sorted({f for seed in by_point for point, (f, _) in seed.items() if point not in common})
+        if lost:
+            named = ", ".join(f"{f:,}" for f in lost)
+            progress(f"{label}: frames {named} left out (not every seed of both rows kept a snapshot there)")
+        for point in sorted(common):
+            at = [seed[point] for seed in by_point]
             lines += compared_at(
                 trained[comparison.base],
-                [s[frames] for s in base],
+                [cells for _, cells in at[: len(base)]],
                 trained[comparison.other],
-                [s[frames] for s in other],
-                frames,
+                [cells for _, cells in at[len(base) :]],
+                round(sum(f for f, _ in at) / len(at)),  # the seeds' mean: their frames where all are equal
             )
         progress(f"{label}: {len(common)} matched snapshots ({len(other)} and {len(base)} seeds)")
     return lines
@@ -450,19 +471,19 @@ FIGURE_SERIES = (  # (CSV cell, legend): the static targets' columns, as Table I
     ("unseen_kitchens_static_sr", "unseen kitchens"),
 )
 PANEL_SIZE = (760, 420)
-# the figure's snapshots of one schedule are drawn as one point: a snapshot is kept at the first update
-# past each multiple of keep_every, so its frames differ by seed (by up to an update's frames: IL's
-# episodes end where they end) but stay millions apart from the next snapshot's
-FIGURE_FRAMES_GRID = 100_000
 PANELS_PER_LINE = 3
 
 
 def row_curves(lines: list[dict]) -> dict[str, tuple[list[float], list[float]]]:
     """One row's curves for the figure: per FIGURE_SERIES legend, (frames in millions, SR %), the mean
-    over the seeds' snapshots at each point of the grid (FIGURE_FRAMES_GRID; x: their mean frames)."""
-    points: dict[int, list[dict]] = {}  # the grid's point -> the seeds' snapshots there
+    over the seeds' snapshots at each point (`snapshot_points`; x: their mean frames)."""
+    seeds: dict[int, list[int]] = {}
     for x in lines:
-        points.setdefault(round(x["frames"] / FIGURE_FRAMES_GRID), []).append(x)
+        seeds.setdefault(x["seed"], []).append(x["frames"])
+    point_of = snapshot_points(list(seeds.values()))
+    points: dict[int, list[dict]] = {}  # snapshot point -> the seeds' snapshots there
+    for x in lines:
+        points.setdefault(point_of[x["frames"]], []).append(x)
     at = [points[k] for k in sorted(points)]
     xs = [sum(x["frames"] for x in group) / len(group) / 1e6 for group in at]
     series = {}

@@ -116,6 +116,17 @@ def test_the_figure_draws_one_point_per_snapshot_of_the_schedule():
     assert xs == pytest.approx([2.5002955, 5.000487]) and ys == [5.0, 4.0]
 
 
+def test_snapshot_points_scale_with_the_schedule():
+    """A small schedule's snapshots (a smoke run's, hundreds of frames apart) stay apart; the paper's,
+    2.5M apart, join across seeds whatever their offsets."""
+    from kgnavbench.checkpoints import snapshot_points
+
+    assert snapshot_points([[525, 1015], [517, 1030]]) == {517: 0, 525: 0, 1015: 1, 1030: 1}
+    paper = snapshot_points([[2_500_354, 5_000_174], [2_500_237, 5_000_800, 7_500_011]])
+    assert paper == {2_500_237: 0, 2_500_354: 0, 5_000_174: 1, 5_000_800: 1, 7_500_011: 2}
+    assert snapshot_points([[40_000_800], [40_000_100]]) == {40_000_100: 0, 40_000_800: 0}
+
+
 def test_an_unknown_row_is_refused_by_name(trained, capsys):
     spec, runs, _ = trained
     argv = ["checkpoints", "--spec", str(spec), "--preset", "smoke", "--runs", str(runs), "--row", "Nope"]
@@ -181,6 +192,46 @@ def test_two_rows_are_compared_at_the_same_frames(trained, tmp_path, capsys):
     # --matched reads every finished seed: not with --seed or --unfinished
     assert main([*argv, "--csv", str(out), "--matched", "--seed", "0"]) == 2
     assert "not with --seed or --unfinished" in capsys.readouterr().err
+
+
+def test_matched_pairs_the_seeds_snapshots_of_one_schedule_not_their_exact_frames(monkeypatch, tmp_path):
+    """A snapshot is kept at the first update past each multiple of keep_every, so seeds (IL's
+    episodes end where they end) keep it at other frames: they are paired as one snapshot, at their
+    mean frames; one some seed lacks is named and left out."""
+    from pathlib import Path
+
+    from kgnavbench import checkpoints
+
+    at = {  # (row, seed) -> the frames of its snapshots
+        ("LSTM A3C", 0): [2_500_400, 5_000_800],
+        ("LSTM A3C", 1): [2_500_013, 5_000_977],
+        ("LSTM A3C", 2): [2_500_400, 5_000_800, 7_501_200],
+        ("+IL", 0): [2_500_400, 5_000_800],
+        ("+IL", 1): [2_500_400, 5_000_800],
+        ("+IL", 2): [2_500_400, 5_000_800],
+    }
+    monkeypatch.setattr(
+        checkpoints, "run_with_snapshots", lambda p, row, seed, *a, **k: Path(f"{row.name}/{seed}")
+    )
+
+    def snapshots(spec, preset_name, row, seed, run_dir, *rest):
+        return {f: f"{row.name} s{seed} at {f}" for f in at.get((row.name, seed), [])}
+
+    calls = []
+    monkeypatch.setattr(checkpoints, "_snapshot_episodes", snapshots)
+    monkeypatch.setattr(
+        checkpoints, "compared_at", lambda b, be, o, oe, frames: calls.append((b.name, be, oe, frames)) or []
+    )
+    said = []
+    checkpoints.matched(load_spec(SPEC_FILE), "paper", tmp_path, rows=("LSTM A3C",), progress=said.append)
+    pairs = [c for c in calls if c[0] == "LSTM A3C"]
+    assert [c[3] for c in pairs] == [
+        round((2_500_400 * 5 + 2_500_013) / 6),
+        round((5_000_800 * 5 + 5_000_977) / 6),
+    ]
+    assert pairs[0][1] == ["LSTM A3C s0 at 2500400", "LSTM A3C s1 at 2500013", "LSTM A3C s2 at 2500400"]
+    assert pairs[1][2] == ["+IL s0 at 5000800", "+IL s1 at 5000800", "+IL s2 at 5000800"]
+    assert any("frames 7,501,200 left out" in line for line in said)
 
 
 def test_a_matched_comparison_is_table_is_comparison_on_the_same_episodes():
