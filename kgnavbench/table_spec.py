@@ -22,8 +22,8 @@ from .plugins import available
 from .tasks import EPISODES_PER_TARGET, load_task_file
 
 SPEC_FILE = Path(__file__).resolve().parent.parent / "tables" / "table1.toml"
-# which checkpoint of a run a table evaluates: "best_val_sr", Table I's rule (the run's best.pt: the best
-# validation SR, the latest within one standard error of it); "last", the run's final weights (last.pt)
+# which checkpoint of a run a table evaluates: "best_val_sr", Table I's rule (the run's best.pt: the
+# highest validation SR, ties to the later); "last", the run's final weights (last.pt)
 CHECKPOINT_RULES = ("best_val_sr", "last")
 PRESET_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,39}")
 # Table I's five cells (column, kind), in the paper's order. The sixth pair of evaluate's columns and
