@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import csv
 import io
-import itertools
 import math
 from pathlib import Path
 
@@ -40,6 +39,7 @@ from .metrics import COLUMNS, KINDS
 from .plots import FigureError, curves_image, write_png
 from .record import RecordError, read_metrics
 from .runs import load_checkpoint
+from .store import read_record
 from .table_spec import CELL_KEYS, METRICS, Row, TableError, TableSpec
 from .table_statistics import RowResult, cell_episodes, cell_statistics, paper_difference
 
@@ -72,20 +72,25 @@ def evaluating_preset(spec: TableSpec, name: str):
     return preset
 
 
-def snapshot_points(seeds: list[list[int]]) -> dict[int, int]:
-    """{frames: point} over the snapshots of several seeds (their frames, one list each), numbered in
-    order: the seeds' snapshots of one schedule are one point. A snapshot is kept at the first update
-    past each multiple of keep_every, so seeds keep it at other frames (by up to an update's frames:
-    IL's episodes end where they end), while one seed's own snapshots stay keep_every apart: frames
-    closer than half the closest two snapshots of one seed are one point."""
-    gaps = [b - a for frames in seeds for a, b in itertools.pairwise(sorted(frames))]
-    reach = min(gaps) / 2 if gaps else math.inf
-    points, first, point = {}, -math.inf, -1
-    for frames in sorted({f for seed in seeds for f in seed}):
-        if frames - first >= reach:
-            first, point = frames, point + 1
-        points[frames] = point
-    return points
+def snapshot_point(frames: int, keep_every: int) -> int:
+    """The multiple of keep_every that a snapshot kept at `frames` stands for: the trainer keeps one at
+    the first update past each multiple, so seeds (IL's episodes end where they end) and rows keep it
+    at other frames; seeds' and rows' snapshots of one point are compared and drawn as one. Without
+    keep_every (0), the frames themselves."""
+    return frames // keep_every * keep_every if keep_every > 0 else frames
+
+
+def run_keep_every(run_dir: Path) -> int:
+    """The keep_every a run trained with (its config.json's options; 0: none): a run found for a
+    preset may have kept snapshots at another spacing, since keep_every changes no weight."""
+    options = read_record(run_dir / "config.json", ("options",), TableError)["options"]
+    return int(options.get("keep_every") or 0) if isinstance(options, dict) else 0
+
+
+def preset_keep_every(spec: TableSpec, preset_name: str) -> dict[str, int]:
+    """{row name: the keep_every the preset trains it with} (0: none), for the figure."""
+    preset = spec.preset(preset_name)
+    return {row.name: int(row_options(preset, row).get("keep_every") or 0) for row in spec.rows}
 
 
 def snapshot_frames(run_dir: Path) -> list[int]:
@@ -273,7 +278,7 @@ def matched(
     progress=print,
 ) -> list[dict]:
     """For each comparison of the spec whose two rows the preset trains (with `rows`: those that
-    involve one of them), other - base at every snapshot (`snapshot_points`; frames: the seeds' mean)
+    involve one of them), other - base at every snapshot (`snapshot_point`; frames: the seeds' mean)
     where every finished seed of both rows kept a snapshot, per cell and metric: the mean over seeds
     with its 95% interval and verdict, computed as Table I's comparisons are (each row's stratified
     bootstrap over seeds and episodes, in the row's and cell's own stream, differenced), on the
@@ -284,7 +289,9 @@ def matched(
     torch.set_num_threads(1)  # as `evidence`: a snapshot's batches are too small to share
     preset = evaluating_preset(spec, preset_name)
     trained = {row.name: row for row in preset_rows(spec, preset) if trains(row)}
-    snapshots: dict[str, list[dict]] = {}  # row name -> per finished seed: {frames: cells}
+    snapshots: dict[
+        str, list[tuple[int, dict]]
+    ] = {}  # row -> per finished seed: (keep_every, {frames: cells})
 
     def row_snapshots(name: str) -> list[dict]:
         if name not in snapshots:
@@ -296,7 +303,7 @@ def matched(
                     continue
                 got = _snapshot_episodes(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device)
                 progress(f"{name} seed {seed}: {len(got)} snapshots ({run_dir.name})")
-                snapshots[name].append(got)
+                snapshots[name].append((run_keep_every(run_dir), got))
         return snapshots[name]
 
     lines = []
@@ -310,8 +317,9 @@ def matched(
             missing = comparison.base if not base else comparison.other
             progress(f"skipped: {label}: {missing} has no finished run with snapshots in {runs_dir}")
             continue
-        point_of = snapshot_points([list(seed) for seed in base + other])
-        by_point = [{point_of[f]: (f, cells) for f, cells in seed.items()} for seed in base + other]
+        by_point = [
+            {snapshot_point(f, keep): (f, cells) for f, cells in got.items()} for keep, got in base + other
+        ]
         common = set.intersection(*map(set, by_point))
         lost = sorted({f for seed in by_point for point, (f, _) in seed.items() if point not in common})
         if lost:
@@ -474,16 +482,12 @@ PANEL_SIZE = (760, 420)
 PANELS_PER_LINE = 3
 
 
-def row_curves(lines: list[dict]) -> dict[str, tuple[list[float], list[float]]]:
+def row_curves(lines: list[dict], keep_every: int = 0) -> dict[str, tuple[list[float], list[float]]]:
     """One row's curves for the figure: per FIGURE_SERIES legend, (frames in millions, SR %), the mean
-    over the seeds' snapshots at each point (`snapshot_points`; x: their mean frames)."""
-    seeds: dict[int, list[int]] = {}
-    for x in lines:
-        seeds.setdefault(x["seed"], []).append(x["frames"])
-    point_of = snapshot_points(list(seeds.values()))
+    over the seeds' snapshots at each point (`snapshot_point`; x: their mean frames)."""
     points: dict[int, list[dict]] = {}  # snapshot point -> the seeds' snapshots there
     for x in lines:
-        points.setdefault(point_of[x["frames"]], []).append(x)
+        points.setdefault(snapshot_point(x["frames"], keep_every), []).append(x)
     at = [points[k] for k in sorted(points)]
     xs = [sum(x["frames"] for x in group) / len(group) / 1e6 for group in at]
     series = {}
@@ -497,9 +501,15 @@ def row_curves(lines: list[dict]) -> dict[str, tuple[list[float], list[float]]]:
     return series
 
 
-def figure(lines: list[dict], path: Path, row_order: list[str] | None = None) -> Path:
+def figure(
+    lines: list[dict],
+    path: Path,
+    row_order: list[str] | None = None,
+    keep_every: dict[str, int] | None = None,
+) -> Path:
     """Validation SR against each test column's SR over frames, one panel per row (the mean over the
-    row's seeds at each snapshot; the seeds' count in the panel's title)."""
+    row's seeds at each snapshot, `keep_every` the row's spacing, `preset_keep_every`; the seeds'
+    count in the panel's title)."""
     names = [r for r in (row_order or []) if any(x["row"] == r for x in lines)]
     names += sorted({x["row"] for x in lines} - set(names))
     if not names:
@@ -507,7 +517,7 @@ def figure(lines: list[dict], path: Path, row_order: list[str] | None = None) ->
     panels = []
     for name in names:
         mine = [x for x in lines if x["row"] == name]
-        series = row_curves(mine)
+        series = row_curves(mine, (keep_every or {}).get(name, 0))
         seeds = len({x["seed"] for x in mine})
         title = f"{name} ({seeds} seed{'s' if seeds != 1 else ''})"
         panels.append(curves_image(series, title, "frames (M)", "SR (%)", PANEL_SIZE, (0,), (0, 100)))

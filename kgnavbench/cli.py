@@ -466,7 +466,7 @@ def cmd_ship(args: argparse.Namespace) -> int:
 
 
 def cmd_checkpoints(args: argparse.Namespace) -> int:
-    from .checkpoints import evidence, figure, matched, matched_figure, merge_matched_csv
+    from .checkpoints import evidence, figure, matched, matched_figure, merge_matched_csv, preset_keep_every
     from .table_spec import SPEC_FILE, load_spec
 
     spec = load_spec(args.spec or SPEC_FILE)
@@ -485,7 +485,8 @@ def cmd_checkpoints(args: argparse.Namespace) -> int:
     )  # fmt: skip
     print(f"wrote {csv_path}: {len(lines)} snapshots of {len({x['run'] for x in lines})} runs")
     if args.figure and lines:
-        print(f"wrote {figure(lines, args.figure, [row.name for row in spec.rows])}")
+        order, keep_every = [row.name for row in spec.rows], preset_keep_every(spec, args.preset)
+        print(f"wrote {figure(lines, args.figure, order, keep_every)}")
     if args.matched:
         pairs = matched(
             spec, args.preset, args.runs, args.episodes, rows, device, lambda line: print(line, flush=True)

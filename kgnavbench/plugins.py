@@ -173,17 +173,19 @@ def watched(source: str, what: str, where: str = "", limit: float | None = None,
         print(f"kgnavbench: still waiting for {what} of {source}{place}: {waited:.0f} s", file=sys.stderr)
         signal.setitimer(signal.ITIMER_REAL, _next_alarm(waited, limit, note))
 
+    # the watchdog is set before the alarm can fire and released after it no longer can: an alarm
+    # raised inside release() would leave the deadline set on code that returned
+    watching = _WATCHDOG.watch(limit + WATCHDOG_GRACE, message) if limit is not None else None
     previous = signal.signal(signal.SIGALRM, alarm)
     callers_timer = signal.setitimer(signal.ITIMER_REAL, _next_alarm(0.0, limit, note))
-    watching = _WATCHDOG.watch(limit + WATCHDOG_GRACE, message) if limit is not None else None
     try:
         yield
         if timed_out:  # the plugin caught the PluginTimeout and returned anyway
             raise PluginTimeout(message)
     finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
         if limit is not None:
             _WATCHDOG.release(watching)
-        signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
         remaining, interval = callers_timer
         if remaining > 0:  # the caller's timer runs on, less the time the block took (at least 1 ms)
@@ -205,9 +207,11 @@ class _Watchdog:
         self.thread: threading.Thread | None = None
 
     def watch(self, seconds: float, message: str):
-        """Watch a block for `seconds` from now; returns what `release` restores (an enclosing block's)."""
+        """Watch a block for `seconds` from now, or to an enclosing block's deadline if that comes
+        first; returns what `release` restores (the enclosing block's)."""
         with self.changed:
-            enclosing, self.deadline = self.deadline, (time.monotonic() + seconds, message)
+            enclosing, due = self.deadline, (time.monotonic() + seconds, message)
+            self.deadline = min(enclosing, due) if enclosing is not None else due
             if self.thread is None or not self.thread.is_alive():
                 self.thread = threading.Thread(target=self.run, name="kgnavbench-watchdog", daemon=True)
                 self.thread.start()
@@ -229,13 +233,15 @@ class _Watchdog:
                 if time.monotonic() < due:
                     self.changed.wait(due - time.monotonic())
                     continue
-                print(
-                    f"kgnavbench: error: {message}, and it defeated the time-out (caught it or ignored "
-                    "SIGALRM): the process ends here",
-                    file=sys.stderr,
-                    flush=True,
-                )
-                os._exit(2)
+                try:
+                    print(
+                        f"kgnavbench: error: {message}, and it defeated the time-out (caught it or "
+                        "ignored SIGALRM): the process ends here",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+                finally:  # a closed stderr must not leave the process running
+                    os._exit(2)
 
 
 _WATCHDOG = _Watchdog()

@@ -110,21 +110,27 @@ def test_the_figure_draws_one_point_per_snapshot_of_the_schedule():
             (1, 5_000_800, 5.0),
         )
     ]
-    curves = row_curves(lines)
+    curves = row_curves(lines, keep_every=2_500_000)
     assert list(curves) == ["seen kitchens, seen targets"]  # columns without a value are not drawn
     xs, ys = curves["seen kitchens, seen targets"]
     assert xs == pytest.approx([2.5002955, 5.000487]) and ys == [5.0, 4.0]
 
 
-def test_snapshot_points_scale_with_the_schedule():
-    """A small schedule's snapshots (a smoke run's, hundreds of frames apart) stay apart; the paper's,
-    2.5M apart, join across seeds whatever their offsets."""
-    from kgnavbench.checkpoints import snapshot_points
+def test_a_snapshot_stands_for_the_multiple_of_keep_every_it_was_kept_past():
+    """The trainer keeps a snapshot at the first update past each multiple of keep_every: a smoke run's
+    (500 apart) and the paper's (2.5M apart) map to their multiple whatever their offsets; runs kept
+    at other spacings meet where their multiples do; without keep_every, the frames themselves."""
+    from kgnavbench.checkpoints import snapshot_point
 
-    assert snapshot_points([[525, 1015], [517, 1030]]) == {517: 0, 525: 0, 1015: 1, 1030: 1}
-    paper = snapshot_points([[2_500_354, 5_000_174], [2_500_237, 5_000_800, 7_500_011]])
-    assert paper == {2_500_237: 0, 2_500_354: 0, 5_000_174: 1, 5_000_800: 1, 7_500_011: 2}
-    assert snapshot_points([[40_000_800], [40_000_100]]) == {40_000_100: 0, 40_000_800: 0}
+    assert [snapshot_point(f, 500) for f in (525, 1015, 517, 1030)] == [500, 1000, 500, 1000]
+    assert [snapshot_point(f, 2_500_000) for f in (2_500_354, 5_000_800, 40_000_800)] == [
+        2_500_000,
+        5_000_000,
+        40_000_000,
+    ]
+    assert snapshot_point(2_000_400, 2_000_000) != snapshot_point(2_500_400, 2_500_000)
+    assert snapshot_point(10_000_400, 2_000_000) == snapshot_point(10_001_600, 2_500_000) == 10_000_000
+    assert snapshot_point(1234, 0) == 1234
 
 
 def test_an_unknown_row_is_refused_by_name(trained, capsys):
@@ -219,6 +225,7 @@ def test_matched_pairs_the_seeds_snapshots_of_one_schedule_not_their_exact_frame
 
     calls = []
     monkeypatch.setattr(checkpoints, "_snapshot_episodes", snapshots)
+    monkeypatch.setattr(checkpoints, "run_keep_every", lambda run_dir: 2_500_000)
     monkeypatch.setattr(
         checkpoints, "compared_at", lambda b, be, o, oe, frames: calls.append((b.name, be, oe, frames)) or []
     )

@@ -609,7 +609,8 @@ def test_a_plugin_that_defeats_the_time_out_ends_the_process_with_one_line(defea
 
 def test_one_watchdog_thread_serves_every_watched_call_and_nested_blocks_keep_their_deadlines():
     """Under --step-timeout every plugin call is watched: one thread for all of them, not one each; an
-    inner block's release gives the enclosing block its own deadline back."""
+    inner block is held to the earlier of its own deadline and the enclosing block's, whose deadline
+    its release gives back."""
     import threading
 
     from kgnavbench import plugins
@@ -621,6 +622,10 @@ def test_one_watchdog_thread_serves_every_watched_call_and_nested_blocks_keep_th
         for _ in range(50):
             with plugins.watched("a.py", "act()", limit=30.0):
                 pass
+        with plugins.watched("b.py", "act()", limit=60.0):  # an inner block never extends the outer's
+            assert plugins._WATCHDOG.deadline == outer
+        with plugins.watched("b.py", "act()", limit=1.0):  # nor shortens it past its own end
+            assert plugins._WATCHDOG.deadline[0] < outer[0] and "b.py" in plugins._WATCHDOG.deadline[1]
         assert threading.active_count() == threads
         assert plugins._WATCHDOG.thread is watchdog and watchdog.is_alive()
         assert plugins._WATCHDOG.deadline == outer
