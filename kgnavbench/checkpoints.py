@@ -289,11 +289,10 @@ def matched(
     torch.set_num_threads(1)  # as `evidence`: a snapshot's batches are too small to share
     preset = evaluating_preset(spec, preset_name)
     trained = {row.name: row for row in preset_rows(spec, preset) if trains(row)}
-    snapshots: dict[
-        str, list[tuple[int, dict]]
-    ] = {}  # row -> per finished seed: (keep_every, {frames: cells})
+    # row name -> per finished seed: (its run's keep_every, {frames: cells})
+    snapshots: dict[str, list[tuple[int, dict]]] = {}
 
-    def row_snapshots(name: str) -> list[dict]:
+    def row_snapshots(name: str) -> list[tuple[int, dict]]:
         if name not in snapshots:
             snapshots[name] = []
             row = trained[name]
