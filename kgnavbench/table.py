@@ -132,7 +132,7 @@ CHECKPOINT_TEXT = {
     "best_val_sr": (
         "the checkpoint with the best validation SR (ties to the later; FF A3C, whose scene-specific "
         "layers exist for its training kitchens only, validated on their seen targets from training "
-        "starts that are no fixed episode's)"
+        "starts that are no fixed episode's, leaving out a target that has none)"
     ),
     "last": "each run's final weights (last.pt), not the paper's rule of the best validation SR",
 }
