@@ -477,6 +477,8 @@ FIGURE_SERIES = (  # (CSV cell, legend): the static targets' columns, as Table I
     ("seen_unseen_static_sr", "seen kitchens, unseen targets"),
     ("unseen_kitchens_static_sr", "unseen kitchens"),
 )
+# FF A3C has heads for its training kitchens only, so it validates on their seen targets (train.py)
+FF_VALIDATION_LEGEND = "validation (its training kitchens, seen targets)"
 PANEL_SIZE = (760, 420)
 PANELS_PER_LINE = 3
 
@@ -500,6 +502,14 @@ def row_curves(lines: list[dict], keep_every: int = 0) -> dict[str, tuple[list[f
     return series
 
 
+def panel_series(lines: list[dict], keep_every: int = 0) -> dict[str, tuple[list[float], list[float]]]:
+    """`row_curves`, with FF A3C's validation named for where it is measured."""
+    series = row_curves(lines, keep_every)
+    if lines and all(x["run"].startswith("ff_a3c-") for x in lines):
+        series = {FF_VALIDATION_LEGEND if k == FIGURE_SERIES[0][1] else k: v for k, v in series.items()}
+    return series
+
+
 def figure(
     lines: list[dict],
     path: Path,
@@ -516,7 +526,7 @@ def figure(
     panels = []
     for name in names:
         mine = [x for x in lines if x["row"] == name]
-        series = row_curves(mine, (keep_every or {}).get(name, 0))
+        series = panel_series(mine, (keep_every or {}).get(name, 0))
         seeds = len({x["seed"] for x in mine})
         title = f"{name} ({seeds} seed{'s' if seeds != 1 else ''})"
         panels.append(curves_image(series, title, "frames (M)", "SR (%)", PANEL_SIZE, (0,), (0, 100)))

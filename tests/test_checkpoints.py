@@ -116,6 +116,18 @@ def test_the_figure_draws_one_point_per_snapshot_of_the_schedule():
     assert xs == pytest.approx([2.5002955, 5.000487]) and ys == [5.0, 4.0]
 
 
+def test_ff_a3cs_validation_is_named_for_its_own_kitchens_in_the_figure():
+    """FF A3C validates on its training kitchens' seen targets (its heads exist only there), the other
+    rows on the validation kitchens: each panel's legend says which."""
+    from kgnavbench.checkpoints import FF_VALIDATION_LEGEND, panel_series
+
+    line = {key: math.nan for key in FIELDS} | {"seed": 0, "frames": 2_500_400, "val_sr": 8.3}
+    ff = panel_series([line | {"row": "FF A3C", "run": "ff_a3c-0123456789"}], 2_500_000)
+    lstm = panel_series([line | {"row": "LSTM A3C", "run": "lstm_a3c-0123456789"}], 2_500_000)
+    assert list(ff) == [FF_VALIDATION_LEGEND] and ff[FF_VALIDATION_LEGEND][1] == [8.3]
+    assert list(lstm) == ["validation (unseen kitchens)"]
+
+
 def test_a_snapshot_stands_for_the_multiple_of_keep_every_it_was_kept_past():
     """The trainer keeps a snapshot at the first update past each multiple of keep_every: a smoke run's
     (500 apart) and the paper's (2.5M apart) map to their multiple whatever their offsets; runs kept
