@@ -405,6 +405,24 @@ def ship_arguments(sub) -> argparse.ArgumentParser:
     return p
 
 
+def episodes_arguments(sub) -> argparse.ArgumentParser:
+    """`kgnavbench episodes`'s arguments."""
+    p = sub.add_parser(
+        "episodes",
+        help="keep finished evaluations in one small file each (tables/episodes/), or rebuild them",
+        description="--pack: each finished evaluation folder (RUNS/eval/<name>/) as OUT/<name>.tar.xz, "
+        "its config.json and every episode as one CSV with each kitchen file's sha256 (about 0.5 MB "
+        "for Table I's 77,100 episodes). --unpack: rebuild each archive in RUNS/eval/, byte for byte, "
+        "so that `table` counts those results instead of evaluating again; files already there are kept.",
+    )
+    mode = p.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--pack", type=Path, nargs="+", metavar="EVAL_DIR", help="finished evaluations")
+    mode.add_argument("--unpack", type=Path, nargs="+", metavar="ARCHIVE", help="packed evaluations")
+    p.add_argument("--out", type=Path, default=Path("tables/episodes"), help="--pack's folder")
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="--unpack's runs folder (default runs/)")
+    return p
+
+
 def checkpoints_arguments(sub) -> argparse.ArgumentParser:
     """`kgnavbench checkpoints`'s arguments."""
     p = sub.add_parser(

@@ -465,6 +465,16 @@ def cmd_ship(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_episodes(args: argparse.Namespace) -> int:
+    from .evaluate import pack_evaluation, unpack_evaluation
+
+    for path in args.pack or ():
+        print(f"packed {path} into {pack_evaluation(path, args.out)}")
+    for path in args.unpack or ():
+        print(f"unpacked {path} into {unpack_evaluation(path, args.runs / 'eval')}")
+    return 0
+
+
 def cmd_checkpoints(args: argparse.Namespace) -> int:
     from .checkpoints import evidence, figure, matched, matched_figure, merge_matched_csv, preset_keep_every
     from .table_spec import SPEC_FILE, load_spec
@@ -521,6 +531,7 @@ def build_parser() -> argparse.ArgumentParser:
     arguments.figures_arguments(sub).set_defaults(func=cmd_figures)
     arguments.ship_arguments(sub).set_defaults(func=cmd_ship)
     arguments.checkpoints_arguments(sub).set_defaults(func=cmd_checkpoints)
+    arguments.episodes_arguments(sub).set_defaults(func=cmd_episodes)
     arguments.view_arguments(sub).set_defaults(func=cmd_view)
     arguments.table_arguments(sub).set_defaults(func=cmd_table)
     arguments.encoder_arguments(sub).set_defaults(func=cmd_encoder)

@@ -384,3 +384,40 @@ def test_a_rewritten_weights_file_is_a_new_evaluation(tmp_path, monkeypatch, flo
     assert second.directory != first.directory and second.resumed == []
     assert {r.episode_length for r in first.results} == {1}
     assert min(r.episode_length for r in second.results) > 1
+
+
+def test_a_packed_evaluation_rebuilds_its_results_byte_for_byte_and_resumes(tmp_path, floorplan1_tasks):
+    """`pack_evaluation` keeps a finished evaluation in one file (the same bytes each time);
+    `unpack_evaluation` rebuilds it in another runs folder, where the same config resumes from it
+    without running an episode; damage, a foreign archive or another evaluation's folder is refused."""
+    from kgnavbench.evaluate import pack_evaluation, unpack_evaluation
+
+    config = EvalConfig("random_walk", kitchens=("FloorPlan1",), episodes_per_target=2, seed=3)
+    first = evaluate(config, tmp_path / "a", progress=lambda line: None)
+    packed = pack_evaluation(first.directory, tmp_path / "packed")
+    assert packed.name == f"{first.directory.name}.tar.xz"
+    assert pack_evaluation(first.directory, tmp_path / "again").read_bytes() == packed.read_bytes()
+    rebuilt = unpack_evaluation(packed, tmp_path / "b" / "eval")
+    for name in ("config.json", "episodes/FloorPlan1.jsonl", "episodes/FloorPlan1.jsonl.sha256"):
+        assert (rebuilt / name).read_bytes() == (first.directory / name).read_bytes()
+    lines = []
+    resumed = evaluate(config, tmp_path / "b", progress=lines.append)
+    assert resumed.resumed == ["FloorPlan1"] and resumed.results == first.results and not lines
+    assert unpack_evaluation(packed, tmp_path / "b" / "eval") == rebuilt  # what is there is kept
+    # another evaluation's folder of that name is refused, and left as it was
+    other = tmp_path / "c" / "eval" / first.directory.name
+    other.mkdir(parents=True)
+    (other / "config.json").write_text("{}")
+    with pytest.raises(EvalError, match="holds another evaluation"):
+        unpack_evaluation(packed, tmp_path / "c" / "eval")
+    assert (other / "config.json").read_text() == "{}" and not (other / "episodes").exists()
+    damaged = tmp_path / "damaged" / packed.name
+    damaged.parent.mkdir()
+    data = bytearray(packed.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(EvalError, match="cannot be read as a packed evaluation"):
+        unpack_evaluation(damaged, tmp_path / "d" / "eval")
+    (first.directory / "episodes" / "FloorPlan1.jsonl").write_text("edited\n")
+    with pytest.raises(EvalError, match="does not match its checksum"):
+        pack_evaluation(first.directory, tmp_path / "edited")
