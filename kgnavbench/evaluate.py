@@ -625,10 +625,10 @@ class EvalRun:
     resumed: list[str] = field(default_factory=list)
 
 
-def _write(path: Path, text: str, checksum: bool = False) -> None:
+def _write(path: Path, text: str | bytes, checksum: bool = False) -> None:
     """Atomically; with `checksum`, its sha256 beside it (results files: an edit is refused, not summed)."""
     try:
-        write_with_checksum(path, text.encode()) if checksum else atomic_write(path, text)
+        write_with_checksum(path, text.encode() if isinstance(text, str) else text) if checksum else atomic_write(path, text)
     except OSError as e:
         raise EvalError(f"cannot write {path}: {e.strerror or e}; choose another --runs folder") from e
 
@@ -802,7 +802,7 @@ def pack_evaluation(directory: Path, out_dir: Path) -> Path:
             info = tarfile.TarInfo(f"{directory.name}/{name}")  # mtime, owner: 0, so the same bytes
             info.size, info.mode = len(content), 0o644
             tar.addfile(info, io.BytesIO(content))
-    _write_bytes(out, buffer.getvalue())
+    _write(out, buffer.getvalue())
     return out
 
 
@@ -846,7 +846,7 @@ def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
     if set(by_kitchen) != set(checksums):
         raise EvalError(f"{archive}: its episodes and its checksums name other kitchens")
     if not config_path.exists():
-        _write_bytes(config_path, config_bytes)
+        _write(config_path, config_bytes)
     for kitchen, lines in by_kitchen.items():
         data = "".join(lines).encode()
         if hashlib.sha256(data).hexdigest() != checksums[kitchen]:
@@ -856,9 +856,3 @@ def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
             _write(path, data.decode(), checksum=True)
     return directory
 
-
-def _write_bytes(path: Path, data: bytes) -> None:
-    try:
-        atomic_write(path, data)
-    except OSError as e:
-        raise EvalError(f"cannot write {path}: {e.strerror or e}") from e
