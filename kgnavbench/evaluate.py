@@ -628,7 +628,8 @@ class EvalRun:
 def _write(path: Path, text: str | bytes, checksum: bool = False) -> None:
     """Atomically; with `checksum`, its sha256 beside it (results files: an edit is refused, not summed)."""
     try:
-        write_with_checksum(path, text.encode() if isinstance(text, str) else text) if checksum else atomic_write(path, text)
+        data = text.encode() if isinstance(text, str) else text
+        write_with_checksum(path, data) if checksum else atomic_write(path, data)
     except OSError as e:
         raise EvalError(f"cannot write {path}: {e.strerror or e}; choose another --runs folder") from e
 
