@@ -856,4 +856,3 @@ def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
         if not path.exists():
             _write(path, data.decode(), checksum=True)
     return directory
-
