@@ -1,12 +1,14 @@
 """Small helpers every stage shares: atomic writes (with a checksum beside the file where it matters), the
-git revision of the checkout, the first line of an error message, a duration for progress lines and
+git revision of the checkout and the machine, the first line of an error message, a duration for progress lines and
 worker processes that end with their parent. No stage's logic lives here."""
 
 from __future__ import annotations
 
 import hashlib
 import os
+import platform
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -39,6 +41,30 @@ def atomic_write(path: Path, content) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+# The settings that pick the vector code paths, and with them the floats of a trained run
+# (docs/reproducibility.md); the thread count changes the order of a sum.
+NUMERICS_ENV = ("MKL_CBWR", "ATEN_CPU_CAPABILITY", "OMP_NUM_THREADS")
+
+
+def machine() -> dict:
+    """The CPU and the numerics a run was computed with, saved beside the git revision in every run
+    directory: the same code and seed give other weights on another CPU or under other vector paths
+    (docs/reproducibility.md), so a run that differs from its namesake can be told why. Decides
+    nothing: it is not part of any run's name."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    except OSError:
+        pass  # not Linux: platform's name stays
+    record = {"cpu": cpu, "cores": os.cpu_count(), "numerics": {k: os.environ.get(k) for k in NUMERICS_ENV}}
+    torch = sys.modules.get("torch")  # only where it is loaded: this module never imports it
+    if torch is not None:
+        record["torch"] = torch.__version__
+        record["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
+    return record
 
 
 def git_revision() -> str:

@@ -15,7 +15,7 @@ import json
 from pathlib import Path
 
 from .errors import KgnavbenchError
-from .files import atomic_write, first_line, git_revision, symbolic_link
+from .files import atomic_write, first_line, git_revision, machine, symbolic_link
 
 
 def digest(identity: dict, digits: int) -> str:
@@ -52,11 +52,11 @@ def open_directory(
 ) -> None:
     """Create `directory` with its config.json, or check that an existing one is this run's. The
     file holds the identity (at its top level, or under the key `under`) and `recorded` (fields kept
-    beside it that decide nothing: the git revision is always one). Another identity there, or an
+    beside it that decide nothing: the git revision and the machine are always among them). Another identity there, or an
     unreadable file, is `error` naming the fields that differ: `what` says what the directory holds
     ("a run", "an evaluation")."""
     path = directory / "config.json"
-    recorded = {**(recorded or {}), "git_revision": git_revision()}
+    recorded = {**(recorded or {}), "git_revision": git_revision(), "machine": machine()}
     if not path.exists():
         saved = {under: identity, **recorded} if under else {**identity, **recorded}
         try:

@@ -229,6 +229,7 @@ def test_random_walk_is_deterministic_and_resumes(tmp_path, floorplan1_tasks):
     assert resumed.resumed == ["FloorPlan1"] and resumed.results == first.results and len(lines) == 1
     saved = json.loads((first.directory / "config.json").read_text())
     assert saved["identity"]["config"]["method"] == "random_walk" and saved["git_revision"]
+    assert saved["machine"]["cpu"] and "machine" not in saved["identity"]  # recorded, decides nothing
     assert saved["identity"]["plugin_config"] == {"stop_probability": 0.1}
     assert first.directory.name.startswith("random_walk-visible-stop-noop-")
     # a wrong Stop is a no-op: failed episodes run to the cap

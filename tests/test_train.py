@@ -520,6 +520,9 @@ def test_train_then_eval_every_learned_plugin(capsys, tmp_path, floorplan1_tasks
     assert (run_dir / "best.pt").exists() and (run_dir / "finished.json").exists()
     config = json.loads((run_dir / "config.json").read_text())
     assert config["method"] == method and config["git_revision"]
+    # the machine that computed it, which the weights depend on: its CPU, the vector paths torch took
+    assert config["machine"]["cpu"] and config["machine"]["torch_cpu_capability"]
+    assert set(config["machine"]["numerics"]) == {"MKL_CBWR", "ATEN_CPU_CAPABILITY", "OMP_NUM_THREADS"}
     header = (run_dir / "metrics.csv").read_text().splitlines()[0]
     assert header.split(",") == list(train.METRICS)
     code = main(
