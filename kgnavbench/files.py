@@ -1,6 +1,6 @@
-"""Small helpers every stage shares: atomic writes (with a checksum beside the file where it matters), the
-git revision of the checkout and the machine, the first line of an error message, a duration for progress lines and
-worker processes that end with their parent. No stage's logic lives here."""
+"""Small helpers every stage shares: atomic writes (with a checksum beside the file where it matters),
+the git revision of the checkout and the machine, the first line of an error message, a duration for
+progress lines and worker processes that end with their parent. No stage's logic lives here."""
 
 from __future__ import annotations
 

@@ -52,9 +52,9 @@ def open_directory(
 ) -> None:
     """Create `directory` with its config.json, or check that an existing one is this run's. The
     file holds the identity (at its top level, or under the key `under`) and `recorded` (fields kept
-    beside it that decide nothing: the git revision and the machine are always among them). Another identity there, or an
-    unreadable file, is `error` naming the fields that differ: `what` says what the directory holds
-    ("a run", "an evaluation")."""
+    beside it that decide nothing: the git revision and the machine are always among them). Another
+    identity there, or an unreadable file, is `error` naming the fields that differ: `what` says what
+    the directory holds ("a run", "an evaluation")."""
     path = directory / "config.json"
     recorded = {**(recorded or {}), "git_revision": git_revision(), "machine": machine()}
     if not path.exists():
