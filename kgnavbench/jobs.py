@@ -35,7 +35,7 @@ from .evaluate import (
     evaluate,
     scored_visible,
 )
-from .files import atomic_write, end_with_parent, first_line, one_line
+from .files import NUMERICS_ENV, atomic_write, end_with_parent, first_line, one_line
 from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, load_plugin
 from .runs import (
@@ -505,8 +505,9 @@ def run_jobs(jobs: list[Job], progress=print, workers: int = 1) -> list[JobOutco
 RAY_RETRIES = 3
 RAY_STATUS_EVERY = 60.0  # seconds between the driver's status lines while nothing ends
 # what a job's process must see as the driver does, whatever environment the nodes were started in:
-# the state-graph cache and the vector code paths that decide a run's floats
-RAY_ENV = ("KGNAVBENCH_CACHE", "MKL_CBWR", "ATEN_CPU_CAPABILITY")
+# the state-graph cache and the vector code paths that decide a run's floats (files.NUMERICS_ENV, which
+# every run directory records, less the thread count: each job sets its own from the preset's `threads`)
+RAY_ENV = ("KGNAVBENCH_CACHE", *(name for name in NUMERICS_ENV if name != "OMP_NUM_THREADS"))
 
 
 def _ray_task(job: Job, title: str, attempts: str, cwd: str) -> JobOutcome:
