@@ -524,6 +524,14 @@ def table_arguments(sub) -> argparse.ArgumentParser:
         "preset's, whatever code revision trained it; a missing one is an error, never trained",
     )
     p.add_argument(
+        "--archive",
+        type=Path,
+        metavar="DIR",
+        help="a folder of packed evaluations (tables/episodes/paper holds the paper presets'): each "
+        "job's evaluation kept there is unpacked into the runs folder and counted, not run again, and "
+        "each one it runs is packed there when it finishes (`kgnavbench episodes`)",
+    )
+    p.add_argument(
         "--train-only",
         action="store_true",
         help="train the preset's runs (all, or --job N's) and stop: no evaluation, "

@@ -400,8 +400,12 @@ def cmd_table(args: argparse.Namespace) -> int:
         raise UsageError("--trained takes runs already trained; --train-only trains them: one or the other")
     if args.ray_node_ip and not args.ray:
         raise UsageError("--ray-node-ip is this machine's address on a Ray cluster: give --ray too")
-    sources = Sources(args.trained, args.train_only)
+    if args.archive is not None and args.train_only:
+        raise UsageError("--archive keeps evaluations; --train-only runs none: one or the other")
+    sources = Sources(args.trained, args.train_only, args.archive)
     arguments.writable_folder(args.runs, "--runs")
+    if args.archive is not None:
+        arguments.writable_folder(args.archive, "--archive")
     if assembles:
         arguments.writable_folder(args.out or spec.path.parent, "--out")
     if args.job is not None:
@@ -411,6 +415,7 @@ def cmd_table(args: argparse.Namespace) -> int:
             ray = (args.ray, args.ray_node_ip)
             run_table(spec, args.preset, args.runs, say, args.workers, device, sources, (), *ray)
         trained = f" --trained {args.trained}" if args.trained is not None else ""
+        trained += f" --archive {args.archive}" if args.archive is not None else ""
         print(
             f"then `kgnavbench table --preset {args.preset} --runs {args.runs}{trained}` evaluates "
             "what is left and assembles the table"

@@ -668,10 +668,14 @@ def check_fixed_options(config: EvalConfig, plugin_config) -> None:
         )
 
 
-def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) -> EvalRun:
+def evaluate(
+    config: EvalConfig, runs_dir: Path | str = "runs", progress=print, archive: Path | None = None
+) -> EvalRun:
     """Run (or resume) an evaluation. Each finished kitchen's results are saved atomically in
     RUN/episodes/<kitchen>.jsonl; a rerun of the same config skips kitchens already there, after
-    checking that they hold exactly the expected episodes (a damaged file is set aside and re-run)."""
+    checking that they hold exactly the expected episodes (a damaged file is set aside and re-run).
+    `archive`: a folder of packed evaluations (tables/episodes/paper): this one, if packed there, is
+    unpacked first and so counted, not run again; if not, it is packed there once finished."""
     plugin = load_plugin(config.method)
     plugin_config = plugin.config(dict(config.options))
     if callable(getattr(plugin.module, "train", None)) and not config.run:
@@ -686,6 +690,9 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
     weights = read_weights(config) if config.run else None
     identity = run_identity(config, plugin, plugin_config, weights)
     directory = Path(runs_dir) / "eval" / config.run_name(identity)
+    packed = Path(archive) / f"{directory.name}{PACKED_SUFFIX}" if archive is not None else None
+    if packed is not None and packed.is_file():
+        unpack_evaluation(packed, directory.parent)  # keeps what is there; refuses another evaluation
     open_run(directory, identity, plugin)
     frozen = freeze_weights(directory, weights) if weights else None
 
@@ -737,6 +744,8 @@ def evaluate(config: EvalConfig, runs_dir: Path | str = "runs", progress=print) 
     summary_json = summary_as_json(run.summary)
     _write(directory / "summary.json", json.dumps(summary_json, indent=2) + "\n")
     _write(directory / "table.md", format_summary(run.summary, describe(config)) + "\n")
+    if packed is not None and not packed.is_file():
+        progress(f"packed {directory.name} into {pack_evaluation(directory, packed.parent)}")
     return run
 
 

@@ -63,10 +63,13 @@ class Sources:
     """Where a job's trained run comes from and what the job does with it: by default it trains (or
     finds, or resumes) the run in the runs folder and evaluates it. `trained`: take the finished run
     from that folder instead (a zoo of shipped runs, or another runs folder) and never train.
-    `train_only`: train, and leave evaluating and assembling to a later `table`."""
+    `train_only`: train, and leave evaluating and assembling to a later `table`. `archive`: a folder of
+    packed evaluations (tables/episodes/paper): a job's evaluation kept there is unpacked into the runs
+    folder and counted, not run again, and one it runs is packed there when it finishes."""
 
     trained: Path | None = None
     train_only: bool = False
+    archive: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -296,7 +299,7 @@ def run_row(job: Job, progress=print) -> tuple:
     config = eval_config(spec, preset, row, seed, options, run_dir, job.device)
     if not config.kitchens:  # every evaluation kitchen is an unseen one, where this row has no cells: "–"
         return run_dir, EvalRun(config, Path(job.runs_dir) / "eval")  # (no kitchens would mean all of them)
-    return run_dir, evaluate(config, job.runs_dir, progress=progress)
+    return run_dir, evaluate(config, job.runs_dir, progress=progress, archive=sources.archive)
 
 
 def time_left(done: list[tuple[bool, float]], todo: list[bool]) -> float | None:

@@ -583,8 +583,9 @@ def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cach
 def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path, capsys):
     """`--train-only` trains the preset's runs and writes no table; `--trained ZOO` takes finished runs
     from a flat folder (as zoo/ ships them), matched by their options and not by the code that trained
-    them, evaluates them without training and writes the table a plain `table` writes; a run missing
-    from the zoo is one line naming the row and seed, never trained."""
+    them, evaluates them without training and writes the table a plain `table` writes; `--archive`
+    keeps its evaluations packed, from which a fresh runs folder assembles it without evaluating; a run
+    missing from the zoo is one line naming the row and seed, never trained."""
     # the smoke preset with two rows, one that trains
     text = SPEC_FILE.read_text()
     head, tail = text.split("[presets.smoke]\n", 1)
@@ -628,6 +629,45 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     assert _numbers((shipped / "table1-smoke.md").read_text()) == _numbers(
         (trained / "table1-smoke.md").read_text()
     )
+    # `--archive`: each evaluation is packed there (as tables/episodes/paper keeps Table I's), and a
+    # fresh runs folder then assembles the same table from the archive, evaluating nothing
+    archive = tmp_path / "archive"
+    assert (
+        main(
+            smoke
+            + [
+                "--runs",
+                str(shipped),
+                "--out",
+                str(shipped),
+                "--trained",
+                str(zoo),
+                "--archive",
+                str(archive),
+            ]
+        )
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert sorted(p.name for p in archive.iterdir()) == sorted(
+        f"{p.name}.tar.xz" for p in (shipped / "eval").iterdir()
+    )
+    assert out.count("packed ") == 2, out
+    fresh = tmp_path / "fresh"
+    assert (
+        main(
+            smoke
+            + ["--runs", str(fresh), "--out", str(fresh), "--trained", str(zoo), "--archive", str(archive)]
+        )
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert "agent-steps/s" not in out and "packed " not in out, out  # nothing evaluated, nothing packed again
+    assert _numbers((fresh / "table1-smoke.md").read_text()) == _numbers(
+        (shipped / "table1-smoke.md").read_text()
+    )
+    assert main(smoke + ["--runs", str(fresh), "--train-only", "--archive", str(archive)]) == 2
+    assert "--archive keeps evaluations; --train-only runs none" in capsys.readouterr().err
     # `--row`: a partial table of the rows named, from the same evaluations, beside the whole one
     whole = (shipped / "table1-smoke.md").read_text()
     from_zoo = ["--runs", str(shipped), "--out", str(shipped), "--trained", str(zoo)]
