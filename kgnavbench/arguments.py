@@ -524,6 +524,13 @@ def table_arguments(sub) -> argparse.ArgumentParser:
         "preset's, whatever code revision trained it; a missing one is an error, never trained",
     )
     p.add_argument(
+        "--against",
+        metavar="PRESET",
+        help="also assemble PRESET's table of the same runs and episodes (paper against paper-last: "
+        "another checkpoint; paper-visible: another success rule) and write this table minus it, "
+        "episode by episode, with intervals: table1-<preset>-against-<PRESET>.md and .csv",
+    )
+    p.add_argument(
         "--archive",
         type=Path,
         metavar="DIR",

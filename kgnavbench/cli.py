@@ -377,8 +377,9 @@ def cmd_encoder(args: argparse.Namespace) -> int:
 def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
     from .jobs import Sources, job_commands, run_job
-    from .table import run_table, to_markdown, write_table
+    from .table import run_table, to_markdown, to_paired_markdown, write_paired, write_table
     from .table_spec import SPEC_FILE, load_spec
+    from .table_statistics import check_same_runs, paired_differences
 
     def say(line: str) -> None:
         print(line, flush=True)
@@ -387,6 +388,12 @@ def cmd_table(args: argparse.Namespace) -> int:
     spec.preset(args.preset)  # an unknown preset is refused before anything runs
     device = arguments.device_name(args.device)
     assembles = not args.jobs and args.job is None and not args.train_only
+    if args.against is not None:
+        check_same_runs(spec.preset(args.preset), spec.preset(args.against))  # before anything runs
+        if not assembles:
+            raise UsageError(
+                "--against differences two assembled tables; --jobs, --job and --train-only assemble none"
+            )
     if args.row and not assembles:
         raise UsageError(
             "--row picks the rows of a table to assemble; --jobs, --job and --train-only assemble none"
@@ -436,6 +443,15 @@ def cmd_table(args: argparse.Namespace) -> int:
     paths = write_table(result, args.out or spec.path.parent)
     print()
     print(to_markdown(result).rstrip())
+    if args.against is not None:
+        base = run_table(
+            spec, args.against, args.runs, say, args.workers, device, sources, tuple(args.row or ()),
+            args.ray, args.ray_node_ip,
+        )  # fmt: skip
+        differences = paired_differences(result, base)
+        paths += write_paired(result, base, differences, args.out or spec.path.parent)
+        print()
+        print(to_paired_markdown(result, base, differences).rstrip())
     print(f"wrote {', '.join(str(p) for p in paths)} in {result.seconds / 60:.1f} min")
     return 0
 

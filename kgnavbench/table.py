@@ -49,7 +49,7 @@ from .table_spec import (
     TableError,
     TableSpec,
 )
-from .table_statistics import RowResult, TableResult, paper_value
+from .table_statistics import PairedDifference, RowResult, TableResult, paper_value
 
 
 def run_table(
@@ -386,6 +386,91 @@ def write_table(result: TableResult, out_dir: Path | str) -> list[Path]:
         (f"{stem}.tex", to_latex(result)),
     ):
         path = out_dir / name
+        try:
+            atomic_write(path, text)
+        except OSError as e:
+            raise TableError(f"cannot write {path}: {e.strerror or e}") from e
+        paths.append(path)
+    return paths
+
+
+def paired_intro(result: TableResult, base: TableResult) -> str:
+    """What a paired-difference table holds (its caption's first part)."""
+    return (
+        f"Paired difference: preset {result.preset.name!r} ({_tested(result)}) − preset "
+        f"{base.preset.name!r} ({_tested(base)}), the same runs on the same fixed episodes, in percentage "
+        "points: per row and cell, the mean over seeds of each seed's mean per-episode difference, with "
+        f"the 95% stratified bootstrap interval over seeds and episodes ({REPLICATES} replicates); higher "
+        "or lower: the interval lies above or below 0; cannot tell: it contains 0; '–': no episodes."
+    )
+
+
+def _tested(result: TableResult) -> str:
+    """'best.pt: the best validation SR; success: Stop at the destination': what a preset tests."""
+    last = checkpoint_rule(result.spec, result.preset) == "last"
+    checkpoint = "last.pt: the final weights" if last else "best.pt: the best validation SR"
+    visible = (result.preset.score_rule or result.spec.protocol.success_rule) == "visible"
+    return f"{checkpoint}; success: Stop {'with the target visible' if visible else 'at the destination'}"
+
+
+def paired_verdict_counts(diffs: list[PairedDifference]) -> str:
+    """'SPL: higher 3, lower 1, cannot tell 6; SR: ...'."""
+    parts = []
+    for metric in METRICS:
+        verdicts = [d.verdict for d in diffs if d.metric == metric and d.verdict]
+        counts = ", ".join(
+            f"{v} {verdicts.count(v)}" for v in VERDICTS if v in ("higher", "lower", "cannot tell")
+        )
+        parts.append(f"{metric}: {counts}")
+    return "; ".join(parts)
+
+
+def to_paired_markdown(result: TableResult, base: TableResult, diffs: list[PairedDifference]) -> str:
+    """One table per metric: a line per row, a column per cell, each 'difference [interval] verdict'."""
+    by_key = {(d.row, d.cell, d.metric): d for d in diffs}
+    rows = list(dict.fromkeys(d.row for d in diffs))
+    lines = [f"**{paired_intro(result, base)} Git {result.git_revision}.**"]
+    for metric in METRICS:
+        head = [f"row ({metric})"] + [CELL_TITLES[cell] for cell in CELL_KEYS]
+        body = []
+        for row in rows:
+            cells = []
+            for cell in CELL_KEYS:
+                d = by_key[(row, cell, metric)]
+                cells.append(NONE if d.ours is None else f"{interval_text(d.ours, signed=True)} {d.verdict}")
+            body.append([row, *cells])
+        lines += ["", *_markdown_table(head, body, numeric=set(range(1, len(head))))]
+    lines += ["", f"Verdicts: {paired_verdict_counts(diffs)}."]
+    return "\n".join(lines) + "\n"
+
+
+def to_paired_csv(result: TableResult, base: TableResult, diffs: list[PairedDifference]) -> str:
+    """Tidy: one line per row, cell and metric: the difference with its 95% interval and the verdict."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow([f"# {paired_intro(result, base)} Git {result.git_revision}."])
+    writer.writerow(["row", "column", "kind", "metric", "difference", "ci_low", "ci_high", "verdict"])
+    for d in diffs:
+        column, _, kind = d.cell.partition("/")
+        i = d.ours
+        writer.writerow(
+            [d.row, column, kind, d.metric, _number(i.estimate if i else None)]
+            + [_number(i.low if i else None), _number(i.high if i else None), d.verdict or ""]
+        )
+    return out.getvalue()
+
+
+def write_paired(
+    result: TableResult, base: TableResult, diffs: list[PairedDifference], out_dir: Path | str
+) -> list[Path]:
+    """table1-<preset>-against-<base>.md and .csv (`-partial` after the preset's name as `write_table`)."""
+    stem = f"table1-{result.preset.name}{'-partial' if result.left_out else ''}-against-{base.preset.name}"
+    paths = []
+    for name, text in (
+        (f"{stem}.md", to_paired_markdown(result, base, diffs)),
+        (f"{stem}.csv", to_paired_csv(result, base, diffs)),
+    ):
+        path = Path(out_dir) / name
         try:
             atomic_write(path, text)
         except OSError as e:

@@ -6,7 +6,8 @@ the table (`TableResult`), and its statistics (`table_statistics`). A cell is th
 each seed's episode mean, with a 95% stratified bootstrap interval over seeds and episodes
 (`intervals`), the paper's number beside it. Each comparison of the spec gets, per cell and metric,
 the paper's difference, ours with its interval, and a verdict (holds, reversed, cannot tell; higher or
-lower where the paper has no side).
+lower where the paper has no side). Two tables of the same runs and episodes (another checkpoint, or
+another success rule) are differenced row by row, episode by episode (`paired_differences`).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from .intervals import (
     Interval,
     difference,
     joint_stratified_bootstrap,
+    mean_interval,
     verdict,
 )
 from .metrics import EpisodeResult, spl_term
@@ -31,6 +33,7 @@ from .table_spec import (
     Comparison,
     Preset,
     Row,
+    TableError,
     TableSpec,
 )
 
@@ -196,3 +199,77 @@ def table_statistics(result: TableResult, reps: int = REPLICATES) -> TableStatis
                     )
                 )
     return TableStatistics(cells, comparisons)
+
+
+# what two presets must share for their tables to be of the same runs and the same fixed episodes
+SAME_RUNS = (
+    "frames",
+    "episodes",
+    "seeds",
+    "train_kitchens",
+    "eval_kitchens",
+    "options",
+    "unseen_target_kitchens",
+)
+
+
+def check_same_runs(preset: Preset, base: Preset) -> None:
+    """TableError unless the two presets train the same runs and evaluate the same fixed episodes."""
+    differ = [f for f in SAME_RUNS if getattr(preset, f) != getattr(base, f)]
+    if differ:
+        raise TableError(
+            f"presets {preset.name!r} and {base.name!r} differ in {', '.join(differ)}: not the same runs "
+            "and episodes, so no paired difference"
+        )
+
+
+@dataclass(frozen=True)
+class PairedDifference:
+    """One row's cell for one metric, a table minus another of the same runs and episodes, in points."""
+
+    row: str
+    cell: str
+    metric: str
+    ours: Interval | None  # None: no episodes in the cell
+    verdict: str | None  # higher, lower or cannot tell (no side is the paper's); None where `ours` is
+
+
+def paired_differences(
+    result: TableResult, base: TableResult, reps: int = REPLICATES
+) -> list[PairedDifference]:
+    """result − base for every row in both, cell and metric, where the two tables test the same runs on
+    the same fixed episodes (paper-last against paper: the final weights against the rule's checkpoint;
+    paper-visible against paper: one success rule against the other). Paired: each episode's value
+    minus the same episode's in `base`, then the mean over seeds of each seed's mean difference with
+    the 95% stratified bootstrap interval of a cell (seeds, then episodes within targets), so the
+    interval is that of the change, not of two independent draws. A preset that trains other runs, or
+    episodes that differ, are refused (TableError)."""
+    check_same_runs(result.preset, base.preset)
+    base_rows = {r.row.name: r for r in base.rows}
+    out = []
+    for r in result.rows:
+        other = base_rows.get(r.row.name)
+        if other is None:
+            continue
+        for cell in CELL_KEYS:
+            pairs = []
+            for seed, (ours, theirs) in enumerate(zip(r.episodes, other.episodes, strict=True)):
+                if [e.stratum for e in ours[cell]] != [e.stratum for e in theirs[cell]]:
+                    raise TableError(
+                        f"row {r.row.name!r}, seed {seed}, {cell}: the two tables' episodes differ "
+                        "(not the same fixed episodes): no paired difference"
+                    )
+                if ours[cell]:
+                    pairs.append(list(zip(ours[cell], theirs[cell])))
+            for metric in METRICS:
+                interval = None
+                if pairs:
+                    per_seed = [[(a.stratum, a.value(metric) - b.value(metric)) for a, b in p] for p in pairs]
+                    interval = mean_interval(per_seed, reps, bootstrap_seed(r.row.name, cell))
+                out.append(
+                    PairedDifference(
+                        r.row.name, cell, metric, interval,
+                        verdict(None, interval.low, interval.high) if interval else None,
+                    )
+                )  # fmt: skip
+    return out

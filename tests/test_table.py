@@ -333,6 +333,44 @@ def fake_result(preset_name: str = "quick") -> TableResult:
     )
 
 
+def test_a_paired_difference_is_episode_by_episode_and_refuses_other_runs_or_episodes():
+    """`paired_differences`: a table minus another of the same runs and episodes (the final weights
+    against the rule's checkpoint): each episode's value minus the same episode's, so a row whose every
+    episode moves from failure to success differs by exactly +100 [100, 100] (higher), an unchanged one
+    by 0 [0, 0] (cannot tell); a preset of other runs, or other episodes, is refused."""
+    from kgnavbench.table import to_paired_csv, to_paired_markdown
+    from kgnavbench.table_statistics import paired_differences
+
+    base = fake_result()
+    result = fake_result()
+    result.preset = dataclasses.replace(result.preset, name="quick-last", checkpoint="last")
+    kg = next(r for r in result.rows if r.row.name == "+KG")
+    kg.episodes = [
+        {cell: [e._replace(success=100.0) for e in values] for cell, values in seed.items()}
+        for seed in kg.episodes
+    ]
+    diffs = {(d.row, d.cell, d.metric): d for d in paired_differences(result, base)}
+    assert len(diffs) == 4 * 5 * 2
+    moved = diffs[("+KG", "seen_seen/static", "SR")]
+    assert (moved.ours.estimate, moved.ours.low, moved.ours.high, moved.verdict) == (100, 100, 100, "higher")
+    same = diffs[("+KG+Attention", "seen_seen/static", "SR")]
+    assert (same.ours.estimate, same.ours.low, same.ours.high, same.verdict) == (0, 0, 0, "cannot tell")
+    assert diffs[("+KG", "unseen_kitchens/static", "SR")].ours.estimate == 0  # its successes stayed
+    assert diffs[("FF A3C", "unseen_kitchens/static", "SR")].ours is None  # no episodes: '–'
+    md = to_paired_markdown(result, base, list(diffs.values()))
+    assert "preset 'quick-last' (last.pt: the final weights; success: Stop at the destination)" in md
+    assert "| +KG | +100.0 [+100.0, +100.0] higher |" in md
+    rows = list(csv.DictReader(to_paired_csv(result, base, list(diffs.values())).splitlines()[1:]))
+    assert len(rows) == 40 and {r["verdict"] for r in rows} <= {"higher", "lower", "cannot tell", ""}
+    other_runs = fake_result()
+    other_runs.preset = dataclasses.replace(other_runs.preset, frames=2000)
+    with pytest.raises(TableError, match="differ in frames: not the same runs"):
+        paired_differences(other_runs, base)
+    kg.episodes[0]["seen_seen/static"] = kg.episodes[0]["seen_seen/static"][1:]
+    with pytest.raises(TableError, match="episodes differ"):
+        paired_differences(result, base)
+
+
 def _cells_of(line: str) -> list[str]:
     return [c.strip() for c in line.strip().strip("|").split("|")]
 
@@ -589,8 +627,13 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     # the smoke preset with two rows, one that trains
     text = SPEC_FILE.read_text()
     head, tail = text.split("[presets.smoke]\n", 1)
+    body, rest = tail.split("[presets.quick]\n", 1)
+    rows = 'rows = ["Random walk", "LSTM A3C"]\n'
     spec_path = tmp_path / "spec.toml"
-    spec_path.write_text(f'{head}[presets.smoke]\nrows = ["Random walk", "LSTM A3C"]\n{tail}')
+    spec_path.write_text(
+        f"{head}[presets.smoke]\n{rows}{body}"
+        f'[presets.smoke-visible]\nscore_rule = "visible"\n{rows}{body}[presets.quick]\n{rest}'
+    )  # smoke-visible: the smoke preset's evaluations under the visible rule, as paper-visible is
     smoke = ["table", "--spec", str(spec_path), "--preset", "smoke", "--workers", "1"]
     trained = tmp_path / "trained"
     assert main(smoke + ["--runs", str(trained), "--train-only"]) == 0
@@ -668,6 +711,16 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     )
     assert main(smoke + ["--runs", str(fresh), "--train-only", "--archive", str(archive)]) == 2
     assert "--archive keeps evaluations; --train-only runs none" in capsys.readouterr().err
+    # `--against`: the same runs' table under another rule, differenced episode by episode
+    against = ["--runs", str(fresh), "--out", str(fresh), "--trained", str(zoo), "--archive", str(archive)]
+    assert main(smoke + against + ["--preset", "smoke-visible", "--against", "smoke"]) == 0
+    out = capsys.readouterr().out
+    assert "agent-steps/s" not in out and "Paired difference: preset 'smoke-visible'" in out, out
+    paired = (fresh / "table1-smoke-visible-against-smoke.csv").read_text().splitlines()
+    assert paired[1].startswith("row,column,kind,metric,difference") and len(paired) == 2 + 2 * 5 * 2
+    assert (fresh / "table1-smoke-visible-against-smoke.md").is_file()
+    assert main(smoke + against + ["--against", "quick"]) == 2
+    assert "presets 'smoke' and 'quick' differ in frames" in capsys.readouterr().err
     # `--row`: a partial table of the rows named, from the same evaluations, beside the whole one
     whole = (shipped / "table1-smoke.md").read_text()
     from_zoo = ["--runs", str(shipped), "--out", str(shipped), "--trained", str(zoo)]
