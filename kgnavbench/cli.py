@@ -376,7 +376,7 @@ def cmd_encoder(args: argparse.Namespace) -> int:
 
 def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
-    from .jobs import Sources, job_commands, run_job
+    from .jobs import Sources, job_commands, only_rows, preset_rows, run_job
     from .table import run_table, to_markdown, to_paired_markdown, write_paired, write_table
     from .table_spec import SPEC_FILE, load_spec
     from .table_statistics import check_same_runs, paired_differences
@@ -388,8 +388,17 @@ def cmd_table(args: argparse.Namespace) -> int:
     spec.preset(args.preset)  # an unknown preset is refused before anything runs
     device = arguments.device_name(args.device)
     assembles = not args.jobs and args.job is None and not args.train_only
+    common: tuple[str, ...] = ()  # --against: the rows both presets run
     if args.against is not None:
         check_same_runs(spec.preset(args.preset), spec.preset(args.against))  # before anything runs
+        theirs = preset_rows(spec, spec.preset(args.against))
+        ours = only_rows(spec, spec.preset(args.preset), tuple(args.row or ()))
+        common = tuple(row.name for row in ours if row in theirs)
+        if not common:
+            raise UsageError(f"presets {args.preset!r} and {args.against!r} share no row to difference")
+        for row in ours:
+            if row not in theirs:
+                print(f"--against: preset {args.against!r} has no row {row.name!r}: not differenced")
         if not assembles:
             raise UsageError(
                 "--against differences two assembled tables; --jobs, --job and --train-only assemble none"
@@ -398,6 +407,12 @@ def cmd_table(args: argparse.Namespace) -> int:
         raise UsageError(
             "--row picks the rows of a table to assemble; --jobs, --job and --train-only assemble none"
         )
+    if args.archive is not None and args.train_only:
+        raise UsageError("--archive keeps evaluations; --train-only runs none: one or the other")
+    if args.archive is not None and args.jobs:
+        raise UsageError("--jobs prints plain commands, without --archive: give it to each `--job N`")
+    if args.archive is not None and not args.archive.is_dir():  # a typo would evaluate everything again
+        raise UsageError(f"--archive {args.archive}: no such folder (create it to start an archive)")
     if args.jobs:
         print("\n".join(job_commands(spec, args.preset, args.runs)))
         return 0
@@ -407,12 +422,10 @@ def cmd_table(args: argparse.Namespace) -> int:
         raise UsageError("--trained takes runs already trained; --train-only trains them: one or the other")
     if args.ray_node_ip and not args.ray:
         raise UsageError("--ray-node-ip is this machine's address on a Ray cluster: give --ray too")
-    if args.archive is not None and args.train_only:
-        raise UsageError("--archive keeps evaluations; --train-only runs none: one or the other")
     sources = Sources(args.trained, args.train_only, args.archive)
     arguments.writable_folder(args.runs, "--runs")
     if args.archive is not None:
-        arguments.writable_folder(args.archive, "--archive")
+        arguments.writable_folder(args.archive, "--archive")  # (it exists: checked above)
     if assembles:
         arguments.writable_folder(args.out or spec.path.parent, "--out")
     if args.job is not None:
@@ -445,9 +458,17 @@ def cmd_table(args: argparse.Namespace) -> int:
     print(to_markdown(result).rstrip())
     if args.against is not None:
         base = run_table(
-            spec, args.against, args.runs, say, args.workers, device, sources, tuple(args.row or ()),
-            args.ray, args.ray_node_ip,
-        )  # fmt: skip
+            spec,
+            args.against,
+            args.runs,
+            say,
+            args.workers,
+            device,
+            sources,
+            common,
+            args.ray,
+            args.ray_node_ip,
+        )
         differences = paired_differences(result, base)
         paths += write_paired(result, base, differences, args.out or spec.path.parent)
         print()

@@ -819,8 +819,9 @@ def pack_evaluation(directory: Path, out_dir: Path) -> Path:
 def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
     """Rebuild a packed evaluation in EVAL_ROOT/<its name> (RUNS/eval): its config.json and each
     kitchen's results with their checksums, each checked against the sha256 it was packed with. Files
-    already there are kept, never overwritten (a differing config.json is refused); a later evaluation
-    of that config then resumes from them."""
+    already there are kept, never overwritten: a config.json of the same evaluation (its identity; the
+    git revision, machine and plugin path it records may differ) stays, another one is refused; a
+    later evaluation of that config then resumes from them."""
     import csv
     import lzma
     import tarfile
@@ -840,8 +841,17 @@ def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
     checksums = json.loads(checksums)
     directory = Path(eval_root) / name
     config_path = directory / "config.json"
-    if config_path.exists() and config_path.read_bytes() != config_bytes:
-        raise EvalError(f"{config_path} holds another evaluation than {archive}: nothing unpacked")
+    try:
+        packed_identity = json.loads(config_bytes)["identity"]
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as e:
+        raise EvalError(f"{archive}: its config.json holds no evaluation's identity ({first_line(e)})") from e
+    if config_path.exists():
+        try:
+            identity = json.loads(config_path.read_bytes())["identity"]
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
+            identity = None
+        if identity != packed_identity:
+            raise EvalError(f"{config_path} holds another evaluation than {archive}: nothing unpacked")
     by_kitchen: dict[str, list[str]] = {}
     reader = csv.reader(io.StringIO(table.decode()))
     if tuple(next(reader, ())) != tuple(RESULT_TYPES):

@@ -405,6 +405,18 @@ def test_a_packed_evaluation_rebuilds_its_results_byte_for_byte_and_resumes(tmp_
     resumed = evaluate(config, tmp_path / "b", progress=lines.append)
     assert resumed.resumed == ["FloorPlan1"] and resumed.results == first.results and not lines
     assert unpack_evaluation(packed, tmp_path / "b" / "eval") == rebuilt  # what is there is kept
+    # the same evaluation started by another checkout (its recorded revision differs), a kitchen
+    # missing: its config.json stays, the kitchen is added
+    saved = json.loads((rebuilt / "config.json").read_text())
+    saved["git_revision"] = "another checkout"
+    (rebuilt / "config.json").write_text(json.dumps(saved))
+    for name in ("FloorPlan1.jsonl", "FloorPlan1.jsonl.sha256"):
+        (rebuilt / "episodes" / name).unlink()
+    assert unpack_evaluation(packed, tmp_path / "b" / "eval") == rebuilt
+    assert json.loads((rebuilt / "config.json").read_text())["git_revision"] == "another checkout"
+    assert (rebuilt / "episodes" / "FloorPlan1.jsonl").read_bytes() == (
+        first.directory / "episodes" / "FloorPlan1.jsonl"
+    ).read_bytes()
     # another evaluation's folder of that name is refused, and left as it was
     other = tmp_path / "c" / "eval" / first.directory.name
     other.mkdir(parents=True)

@@ -675,6 +675,9 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     # `--archive`: each evaluation is packed there (as tables/episodes/paper keeps Table I's), and a
     # fresh runs folder then assembles the same table from the archive, evaluating nothing
     archive = tmp_path / "archive"
+    assert main(smoke + ["--runs", str(shipped), "--trained", str(zoo), "--archive", str(archive)]) == 2
+    assert "no such folder (create it to start an archive)" in capsys.readouterr().err  # a typo, not hours
+    archive.mkdir()
     assert (
         main(
             smoke
