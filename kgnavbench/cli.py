@@ -409,13 +409,8 @@ def cmd_table(args: argparse.Namespace) -> int:
         )
     if args.archive is not None and args.train_only:
         raise UsageError("--archive keeps evaluations; --train-only runs none: one or the other")
-    if args.archive is not None and args.jobs:
-        raise UsageError("--jobs prints plain commands, without --archive: give it to each `--job N`")
     if args.archive is not None and not args.archive.is_dir():  # a typo would evaluate everything again
         raise UsageError(f"--archive {args.archive}: no such folder (create it to start an archive)")
-    if args.jobs:
-        print("\n".join(job_commands(spec, args.preset, args.runs)))
-        return 0
     if args.trained is not None and not args.trained.is_dir():
         raise UsageError(f"--trained {args.trained}: no such folder")
     if args.trained is not None and args.train_only:
@@ -423,6 +418,9 @@ def cmd_table(args: argparse.Namespace) -> int:
     if args.ray_node_ip and not args.ray:
         raise UsageError("--ray-node-ip is this machine's address on a Ray cluster: give --ray too")
     sources = Sources(args.trained, args.train_only, args.archive)
+    if args.jobs:  # each command carries --trained, --train-only and --archive
+        print("\n".join(job_commands(spec, args.preset, args.runs, sources)))
+        return 0
     arguments.writable_folder(args.runs, "--runs")
     if args.archive is not None:
         arguments.writable_folder(args.archive, "--archive")  # (it exists: checked above)

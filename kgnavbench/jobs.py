@@ -359,15 +359,21 @@ def execute(job: Job, progress=print) -> JobOutcome:
     )
 
 
-def job_commands(spec: TableSpec, preset_name: str, runs_dir: Path | str) -> list[str]:
+def job_commands(
+    spec: TableSpec, preset_name: str, runs_dir: Path | str, sources: Sources = Sources()
+) -> list[str]:
     """One shell command per job (for a Slurm array, `xargs -P`, ssh loops): each trains and evaluates
-    its row and seed into the shared runs folder; `kgnavbench table` after them only assembles."""
+    its row and seed into the shared runs folder (as `sources` says: --trained, --train-only and
+    --archive carry over); `kgnavbench table` after them only assembles."""
     preset = spec.preset(preset_name)
     jobs = table_jobs(spec, preset)
     spec_option = (
         "" if Path(spec.path).resolve() == SPEC_FILE.resolve() else f" --spec {quote(str(spec.path))}"
     )
     base = f"kgnavbench table --preset {quote(preset.name)}{spec_option} --runs {quote(str(runs_dir))}"
+    base += f" --trained {quote(str(sources.trained))}" if sources.trained is not None else ""
+    base += " --train-only" if sources.train_only else ""
+    base += f" --archive {quote(str(sources.archive))}" if sources.archive is not None else ""
     # every argument quoted for the shell; the row's name only in a comment, on one line
     return [
         f"{base} --job {n + 1}  # {one_line(row.name)} (seed {seed})" for n, (row, seed) in enumerate(jobs)

@@ -982,6 +982,15 @@ def test_jobs_prints_one_command_per_job_and_job_checks_its_number(capsys, tmp_p
         "--job 1  # Random walk (seed 0)"
     )
     assert lines[-1].endswith("--job 27  # +KG+Attention (seed 2)")
+    # where the runs come from and where evaluations are kept carry over to every command
+    sources = ["--trained", str(tmp_path / "zoo"), "--archive", str(tmp_path / "kept")]
+    (tmp_path / "zoo").mkdir(), (tmp_path / "kept").mkdir()
+    assert main(["table", "--preset", "quick", "--runs", str(tmp_path), "--jobs"] + sources) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 27 and all(
+        f" --trained {tmp_path / 'zoo'} --archive {tmp_path / 'kept'} --job " in x for x in lines
+    )
+    (tmp_path / "zoo").rmdir(), (tmp_path / "kept").rmdir()
     assert main(["table", "--preset", "quick", "--runs", str(tmp_path), "--job", "28"]) == 2
     assert "jobs 1..27, not 28" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing written
