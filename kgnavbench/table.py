@@ -24,6 +24,9 @@ from pathlib import Path
 
 from .files import atomic_write, git_revision, one_line
 from .intervals import (
+    CANNOT_TELL,
+    HIGHER,
+    LOWER,
     REPLICATES,
     VERDICTS,
     Interval,
@@ -219,11 +222,16 @@ def ablation_rows(result: TableResult) -> list[list[str]]:
 
 def verdict_counts(result: TableResult) -> str:
     """'SPL: holds 3, reversed 1, cannot tell 6; SR: ...' over every comparison and cell."""
+    return _counts(result.statistics().comparisons, VERDICTS)
+
+
+def _counts(items, verdicts: tuple[str, ...]) -> str:
+    """'SPL: holds 3, ...; SR: ...': how many of `items` (each with a metric and a verdict, None
+    where it has no episodes) have each of `verdicts`, per metric."""
     parts = []
     for metric in METRICS:
-        verdicts = [s.verdict for s in result.statistics().comparisons if s.metric == metric and s.verdict]
-        counts = ", ".join(f"{v} {verdicts.count(v)}" for v in VERDICTS)
-        parts.append(f"{metric}: {counts}")
+        found = [i.verdict for i in items if i.metric == metric and i.verdict]
+        parts.append(f"{metric}: " + ", ".join(f"{v} {found.count(v)}" for v in verdicts))
     return "; ".join(parts)
 
 
@@ -375,17 +383,24 @@ def write_table(result: TableResult, out_dir: Path | str) -> list[Path]:
     table1-<preset>-ablation.csv for the others; `-partial` after the preset's name for a table without
     some of its rows (`--row`), so that it never overwrites the whole one (a later partial table of the
     same preset replaces an earlier one)."""
-    out_dir = Path(out_dir)
     stem = "table1" if result.preset.name == "quick" else f"table1-{result.preset.name}"
     stem += "-partial" if result.left_out else ""
+    return _write_files(
+        out_dir,
+        (
+            (f"{stem}.md", to_markdown(result)),
+            (f"{stem}.csv", to_csv(result)),
+            (f"{stem}-ablation.csv", to_ablation_csv(result)),
+            (f"{stem}.tex", to_latex(result)),
+        ),
+    )
+
+
+def _write_files(out_dir: Path | str, files: tuple[tuple[str, str], ...]) -> list[Path]:
+    """Each (name, text) atomically into OUT_DIR/name; a failure is one TableError naming the file."""
     paths = []
-    for name, text in (
-        (f"{stem}.md", to_markdown(result)),
-        (f"{stem}.csv", to_csv(result)),
-        (f"{stem}-ablation.csv", to_ablation_csv(result)),
-        (f"{stem}.tex", to_latex(result)),
-    ):
-        path = out_dir / name
+    for name, text in files:
+        path = Path(out_dir) / name
         try:
             atomic_write(path, text)
         except OSError as e:
@@ -414,15 +429,8 @@ def _tested(result: TableResult) -> str:
 
 
 def paired_verdict_counts(diffs: list[PairedDifference]) -> str:
-    """'SPL: higher 3, lower 1, cannot tell 6; SR: ...'."""
-    parts = []
-    for metric in METRICS:
-        verdicts = [d.verdict for d in diffs if d.metric == metric and d.verdict]
-        counts = ", ".join(
-            f"{v} {verdicts.count(v)}" for v in VERDICTS if v in ("higher", "lower", "cannot tell")
-        )
-        parts.append(f"{metric}: {counts}")
-    return "; ".join(parts)
+    """'SPL: cannot tell 6, higher 3, lower 1; SR: ...' (no side is the paper's)."""
+    return _counts(diffs, (CANNOT_TELL, HIGHER, LOWER))
 
 
 def to_paired_markdown(result: TableResult, base: TableResult, diffs: list[PairedDifference]) -> str:
@@ -465,15 +473,10 @@ def write_paired(
 ) -> list[Path]:
     """table1-<preset>-against-<base>.md and .csv (`-partial` after the preset's name as `write_table`)."""
     stem = f"table1-{result.preset.name}{'-partial' if result.left_out else ''}-against-{base.preset.name}"
-    paths = []
-    for name, text in (
-        (f"{stem}.md", to_paired_markdown(result, base, diffs)),
-        (f"{stem}.csv", to_paired_csv(result, base, diffs)),
-    ):
-        path = Path(out_dir) / name
-        try:
-            atomic_write(path, text)
-        except OSError as e:
-            raise TableError(f"cannot write {path}: {e.strerror or e}") from e
-        paths.append(path)
-    return paths
+    return _write_files(
+        out_dir,
+        (
+            (f"{stem}.md", to_paired_markdown(result, base, diffs)),
+            (f"{stem}.csv", to_paired_csv(result, base, diffs)),
+        ),
+    )

@@ -22,7 +22,6 @@ from .intervals import (
     Interval,
     difference,
     joint_stratified_bootstrap,
-    mean_interval,
     verdict,
 )
 from .metrics import EpisodeResult, spl_term
@@ -261,11 +260,17 @@ def paired_differences(
                     )
                 if ours[cell]:
                     pairs.append(list(zip(ours[cell], theirs[cell])))
-            for metric in METRICS:
-                interval = None
-                if pairs:
-                    per_seed = [[(a.stratum, a.value(metric) - b.value(metric)) for a, b in p] for p in pairs]
-                    interval = mean_interval(per_seed, reps, bootstrap_seed(r.row.name, cell))
+            # SPL and SR from the same resamples, as a cell's (`cell_statistics`)
+            per_seed = [
+                [(a.stratum, tuple(a.value(m) - b.value(m) for m in METRICS)) for a, b in p] for p in pairs
+            ]
+            boots = (
+                joint_stratified_bootstrap(per_seed, reps, bootstrap_seed(r.row.name, cell))
+                if per_seed
+                else [None] * len(METRICS)
+            )
+            for metric, boot in zip(METRICS, boots):
+                interval = boot.interval() if boot else None
                 out.append(
                     PairedDifference(
                         r.row.name, cell, metric, interval,
