@@ -223,17 +223,20 @@ def evidence(
     unknown = sorted(set(rows) - {row.name for row in spec.rows})
     if unknown:
         raise TableError(f"no row named {', '.join(map(repr, unknown))} in {spec.path}")
-    only_rows(spec, preset, rows)  # a row of the spec that the preset does not train: named
-    if any(not 0 <= seed < preset.seeds for seed in seeds):
+    # a row of the spec that the preset does not train is named; a seed no row of them trains, refused
+    most = max(preset.seeds_of(row.name) for row in only_rows(spec, preset, rows))
+    if any(not 0 <= seed < most for seed in seeds):
         raise TableError(
-            f"preset {preset_name!r} trains seeds 0..{preset.seeds - 1}, not "
-            + ", ".join(str(seed) for seed in seeds if not 0 <= seed < preset.seeds)
+            f"preset {preset_name!r} trains seeds 0..{most - 1}"
+            + (f" of {', '.join(rows)}" if rows else "")
+            + ", not "
+            + ", ".join(str(seed) for seed in seeds if not 0 <= seed < most)
         )
     read_csv(csv_path)  # a damaged CSV is refused before anything is evaluated
     for row in preset_rows(spec, preset):
         if (rows and row.name not in rows) or not trains(row):
             continue
-        for seed in range(preset.seeds):
+        for seed in range(preset.seeds_of(row.name)):
             if seeds and seed not in seeds:
                 continue
             run_dir = run_with_snapshots(preset, row, seed, runs_dir, device, progress, unfinished)
@@ -296,7 +299,7 @@ def matched(
         if name not in snapshots:
             snapshots[name] = []
             row = trained[name]
-            for seed in range(preset.seeds):
+            for seed in range(preset.seeds_of(name)):
                 run_dir = run_with_snapshots(preset, row, seed, runs_dir, device, progress)
                 if run_dir is None:
                     continue

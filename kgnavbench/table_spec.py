@@ -83,6 +83,20 @@ class Preset:
     # the success rule its cells are scored under; empty: the protocol's. "visible" on a protocol of
     # "destination" with Stop ending the episode scores the same evaluations (`evaluate.scored_visible`)
     score_rule: str = ""
+    # a row's own number of seeds where it differs from `seeds` (row name -> seeds 0..n-1): more seeds
+    # where they decide the paper's comparisons (docs/table1.md), without training every row again
+    row_seeds: dict[str, int] = field(default_factory=dict)
+
+    def seeds_of(self, row: str) -> int:
+        """How many seeds (0..n-1) the row named `row` trains and evaluates under this preset."""
+        return self.row_seeds.get(row, self.seeds)
+
+    def seeds_text(self) -> str:
+        """ "3 seeds" or "3 seeds (+KG: 6)": what a caption says of the preset's seeds."""
+        text = f"{self.seeds} seed{'' if self.seeds == 1 else 's'}"
+        if self.row_seeds:
+            text += " (" + "; ".join(f"{name}: {n}" for name, n in self.row_seeds.items()) + ")"
+        return text
 
     @property
     def threads(self) -> int:
@@ -221,6 +235,7 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
                 "checkpoint",
                 "unseen_target_kitchens",
                 "score_rule",
+                "row_seeds",
             },  # fmt: skip
         )
         preset = Preset(
@@ -239,6 +254,7 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
             rows=tuple(_field(where, t, "rows", list, [], required=False)),
             checkpoint=_field(where, t, "checkpoint", str, "", required=False),
             score_rule=_field(where, t, "score_rule", str, "", required=False),
+            row_seeds=_row_seeds(f"{where}.row_seeds", _field(where, t, "row_seeds", dict, {}, False)),
             # in the kitchens' order: the same kitchens listed otherwise are the same evaluations
             unseen_target_kitchens=tuple(
                 sorted(
@@ -315,6 +331,13 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
     if len(set(names)) != len(names):
         raise TableError(f"{path}: rows: a row name is used twice")
     for preset in presets.values():
+        runs = preset.rows or names
+        elsewhere = [n for n in preset.row_seeds if n not in runs]
+        if elsewhere:
+            raise TableError(
+                f"{path}: presets.{preset.name}.row_seeds: {elsewhere[0]!r} is not a row of the preset "
+                f"(its rows: {'; '.join(runs)})"
+            )
         unknown = [n for n in preset.rows if n not in names]
         if unknown or len(set(preset.rows)) != len(preset.rows):
             raise TableError(
@@ -323,6 +346,16 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
             )
     comparisons = _comparisons(path, _field(str(path), raw, "comparisons", list, [], required=False), names)
     return TableSpec(path, protocol, presets, tuple(rows), comparisons)
+
+
+def _row_seeds(where: str, table: dict) -> dict[str, int]:
+    """`row_seeds = { "ROW" = N }`: a row's own number of seeds, 1..100 (row names are checked later)."""
+    out = {}
+    for name, n in table.items():
+        if not isinstance(n, int) or isinstance(n, bool) or not 1 <= n <= 100:
+            raise TableError(f"{where}.{name!r} = {n!r} must be a number of seeds, 1..100")
+        out[name] = n
+    return out
 
 
 def _comparisons(path: Path, tables: list, row_names: list[str]) -> tuple[Comparison, ...]:

@@ -205,6 +205,7 @@ SAME_RUNS = (
     "frames",
     "episodes",
     "seeds",
+    "row_seeds",
     "train_kitchens",
     "eval_kitchens",
     "options",

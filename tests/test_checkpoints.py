@@ -168,6 +168,16 @@ def test_an_unknown_row_is_refused_by_name(trained, capsys):
     assert main([*argv, "--seed", "0", "--seed", "4"]) == 2
     assert "preset 'smoke' trains seeds 0..0, not 4" in capsys.readouterr().err
     assert not csv_path.exists()
+    # a row with seeds of its own (`row_seeds`): its seeds are accepted, one beyond them refused
+    more = spec.parent / "more-seeds.toml"
+    more.write_text(
+        spec.read_text().replace("[presets.smoke]\n", '[presets.smoke]\nrow_seeds = { "LSTM A3C" = 2 }\n')
+    )
+    argv[2] = str(more)
+    assert main([*argv, "--row", "LSTM A3C", "--seed", "2"]) == 2
+    assert "preset 'smoke' trains seeds 0..1 of LSTM A3C, not 2" in capsys.readouterr().err
+    main([*argv, "--row", "LSTM A3C", "--seed", "1"])
+    assert "skipped: row 'LSTM A3C' (seed 1): no finished" in capsys.readouterr().out  # none here
 
 
 def test_two_rows_are_compared_at_the_same_frames(trained, tmp_path, capsys):

@@ -207,6 +207,25 @@ UNSEEN_TARGETS = '[presets.{0}]\nunseen_target_kitchens = ["{1}"]\n'
             lambda t: t.replace("[presets.smoke]\n", UNSEEN_TARGETS.format("smoke", "FloorPlan2")),
             "presets.smoke.unseen_target_kitchens: FloorPlan2 is not a training kitchen that the preset",
         ),
+        (
+            lambda t: t.replace("[presets.paper]\n", '[presets.paper]\nrow_seeds = { "+KG" = 0 }\n'),
+            "presets.paper.row_seeds.'+KG' = 0 must be a number of seeds, 1..100",
+        ),
+        (
+            lambda t: t.replace("[presets.paper]\n", '[presets.paper]\nrow_seeds = { "+KG" = true }\n'),
+            "presets.paper.row_seeds.'+KG' = True must be a number of seeds",
+        ),
+        (
+            lambda t: t.replace("[presets.paper]\n", '[presets.paper]\nrow_seeds = { "+GK" = 6 }\n'),
+            "presets.paper.row_seeds: '+GK' is not a row of the preset",
+        ),
+        # a row of the spec that the preset does not run
+        (
+            lambda t: t.replace(
+                "[presets.paper]\n", '[presets.paper]\nrow_seeds = { "+KG, first reading" = 6 }\n'
+            ),
+            "presets.paper.row_seeds: '+KG, first reading' is not a row of the preset",
+        ),
     ],
 )
 def test_a_bad_spec_gets_one_clear_line_naming_the_field(change, named):
@@ -229,6 +248,25 @@ def test_a_preset_can_evaluate_unseen_targets_in_some_kitchens_and_its_caption_s
         in (caption(result))
     )
     assert "seen or unseen targets; '–'" in caption(TableResult(spec, spec.presets["smoke"], [], 60.0, "abc"))
+
+
+def test_a_row_can_have_its_own_seeds_which_follow_every_other_job_and_the_caption_says_so():
+    more = '[presets.paper]\nrow_seeds = { "+KG" = 5, "IL" = 4, "LSTM A3C" = 2 }\n'
+    spec = parse_spec(GOOD.replace("[presets.paper]\n", more))
+    preset, before = spec.presets["paper"], parse_spec(GOOD).presets["paper"]
+    assert (preset.seeds_of("+KG"), preset.seeds_of("IL"), preset.seeds_of("FF A3C")) == (5, 4, 3)
+    jobs = [(row.name, seed) for row, seed in table_jobs(spec, preset)]
+    # the preset's seeds of every row first, in the old order but for LSTM A3C's third seed; then the
+    # extra seeds, row by row in the spec's order, so that adding seeds renumbers no other job
+    old = [(row.name, seed) for row, seed in table_jobs(spec, before)]
+    assert jobs[: len(old) - 1] == [job for job in old if job != ("LSTM A3C", 2)]
+    assert jobs[len(old) - 1 :] == [("IL", 3), ("+KG", 3), ("+KG", 4)]
+    assert "3 seeds (+KG: 5; IL: 4; LSTM A3C: 2);" in caption(TableResult(spec, preset, [], 60.0, "abc"))
+    # presets whose rows have other seeds are other runs: no paired difference between them
+    from kgnavbench.table_statistics import check_same_runs
+
+    with pytest.raises(TableError, match="differ in row_seeds"):
+        check_same_runs(preset, spec.presets["paper-last"])
 
 
 def test_a_spec_without_comparisons_is_fine():
