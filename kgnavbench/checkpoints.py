@@ -335,15 +335,19 @@ def matched(
                 trained[comparison.other],
                 [cells for _, cells in at[len(base) :]],
                 round(sum(f for f, _ in at) / len(at)),  # the seeds' mean: their frames where all are equal
+                spec.protocol.margin,
             )
         progress(f"{label}: {len(common)} matched snapshots ({len(other)} and {len(base)} seeds)")
     return lines
 
 
-def compared_at(base: Row, base_episodes: list[dict], other: Row, other_episodes: list[dict], frames: int):
+def compared_at(
+    base: Row, base_episodes: list[dict], other: Row, other_episodes: list[dict], frames: int, margin: float
+):
     """other - base at one frame count, per cell and metric, from each row's episodes per seed ("column/
     kind" -> EpisodeValues, as `cell_episodes` gives): the lines of `matched`, computed as Table I's
-    comparisons are (`table_statistics`: each row's own bootstrap stream, differenced)."""
+    comparisons are (`table_statistics`: each row's own bootstrap stream, differenced), the verdicts at
+    the spec's `margin`."""
     stats = {
         name: {cell: cell_statistics(RowResult(row, per_seed, [], [], 0.0), cell) for cell in CELL_KEYS}
         for name, row, per_seed in (("base", base, base_episodes), ("other", other, other_episodes))
@@ -369,7 +373,7 @@ def compared_at(base: Row, base_episodes: list[dict], other: Row, other_episodes
                     "difference": ours.estimate,
                     "low": ours.low,
                     "high": ours.high,
-                    "verdict": verdict(paper, ours.low, ours.high),
+                    "verdict": verdict(paper, ours.low, ours.high, margin),
                 }
             )
     return lines

@@ -33,8 +33,33 @@ CONFIDENCE = 0.95
 _BLOCK = 1_000_000
 
 HOLDS, REVERSED, CANNOT_TELL = "holds", "reversed", "cannot tell"
+# where the paper's effect is there but ours is of another size: d beyond our interval or inside it
+HOLDS_SMALLER, HOLDS_LARGER = "holds, smaller than the paper's", "holds, larger than the paper's"
+SMALLER = "smaller than the paper's"  # no effect can be told, but the paper's is ruled out
 HIGHER, LOWER = "higher", "lower"  # where the paper has no side: ours alone
-VERDICTS = (HOLDS, REVERSED, CANNOT_TELL, HIGHER, LOWER)
+NO_DIFFERENCE = "no difference beyond"  # + the margin: the interval lies within [-margin, margin]
+
+
+def no_difference(margin: float) -> str:
+    """'no difference beyond 3': the verdict of an interval that lies within [-margin, margin]."""
+    return f"{NO_DIFFERENCE} {margin:g}"
+
+
+def verdicts(margin: float) -> tuple[str, ...]:
+    """Every verdict, in the order of precedence `verdict` applies them (and tables count them)."""
+    return (
+        HOLDS,
+        HOLDS_SMALLER,
+        HOLDS_LARGER,
+        REVERSED,
+        HIGHER,
+        LOWER,
+        no_difference(margin),
+        SMALLER,
+        CANNOT_TELL,
+    )
+
+
 # A paper difference below this many percentage points has no side: the paper prints one run per row,
 # to two decimals, and a difference of a few hundredths of a point claims nothing.
 PAPER_TIE = 0.5
@@ -188,22 +213,41 @@ def row_difference(
     )
 
 
-def verdict(paper_difference: float | None, low: float, high: float) -> str:
-    """Whether our interval for a difference (other - base) agrees with the paper's difference:
+def verdict(paper_difference: float | None, low: float, high: float, margin: float) -> str:
+    """What our 95% interval [low, high] of a difference (other - base, in points) says of the paper's
+    printed difference d. An end at exactly 0 counts as containing 0. In this order of precedence:
 
-    * "holds": the interval lies wholly on the same side of 0 as the paper's difference;
-    * "reversed": it lies wholly on the other side;
-    * "cannot tell": it contains 0 (ends included);
-    * where the paper has no side (its difference is missing, None: a comparison of ours or a cell the
-      paper reports for one row only; or smaller than PAPER_TIE points), "higher" or "lower": our
-      interval lies wholly above or below 0, with no claim of the paper's to agree or disagree with.
+    * the paper has a side (|d| >= PAPER_TIE), and the interval excludes 0
+      - on the paper's side: "holds" (it contains d), "holds, smaller than the paper's" (d lies beyond
+        it, further from 0), "holds, larger than the paper's" (d lies between 0 and it);
+      - on the other side: "reversed";
+    * the paper has no side (d is None: a comparison of ours or a cell the paper reports for one row
+      only; or |d| < PAPER_TIE), and the interval excludes 0: "higher" or "lower";
+    * the interval lies within [-margin, margin]: "no difference beyond MARGIN" (d inside the margin
+      agrees with it too: the difference, the paper's included, is small);
+    * the paper has a side, the interval contains 0 and excludes d: "smaller than the paper's";
+    * else "cannot tell".
     """
-    if low <= 0 <= high:
-        return CANNOT_TELL
-    ours_positive = low > 0
-    if paper_difference is None or abs(paper_difference) < PAPER_TIE:
-        return HIGHER if ours_positive else LOWER
-    return HOLDS if ours_positive == (paper_difference > 0) else REVERSED
+    if low > high:
+        raise ValueError(f"an interval's low end {low} is above its high end {high}")
+    if margin < 0:
+        raise ValueError(f"the margin is {margin} points; it must be 0 or more")
+    sided = paper_difference is not None and abs(paper_difference) >= PAPER_TIE
+    if low > 0 or high < 0:  # the interval excludes 0
+        positive = low > 0
+        if not sided:
+            return HIGHER if positive else LOWER
+        if positive != (paper_difference > 0):
+            return REVERSED
+        if low <= paper_difference <= high:
+            return HOLDS
+        beyond = abs(paper_difference) > max(abs(low), abs(high))
+        return HOLDS_SMALLER if beyond else HOLDS_LARGER
+    if -margin <= low and high <= margin:
+        return no_difference(margin)
+    if sided and not low <= paper_difference <= high:
+        return SMALLER
+    return CANNOT_TELL
 
 
 def _percentile_interval(estimate: float, replicates: np.ndarray, confidence: float) -> Interval:

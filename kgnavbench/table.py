@@ -28,8 +28,9 @@ from .intervals import (
     HIGHER,
     LOWER,
     REPLICATES,
-    VERDICTS,
     Interval,
+    no_difference,
+    verdicts,
 )
 from .jobs import (
     Job,
@@ -179,14 +180,27 @@ def table_rows(result: TableResult) -> list[list[str]]:
     return lines
 
 
-ABLATION_INTRO = (
-    "For each comparison the paper draws and each cell: other − base in percentage points, the paper's "
-    "(as printed) and ours (the difference of the two rows' means, with the 95% interval of the "
-    "differences of their independent bootstrap replicates), and the verdict: holds (our interval lies "
-    "on the paper's side of 0), reversed (on the other side), cannot tell (it contains 0); where the "
-    "paper has no side (no difference printed, or one below 0.5 points), higher or lower (our interval "
-    "lies above or below 0); '–': no episodes."
-)
+def verdict_rules(margin: float) -> str:
+    """The verdicts, as every caption of a table of differences states them (`intervals.verdict`)."""
+    return (
+        f"Each verdict reads one 95% interval (so among many cells a few are wrong by chance), at a margin "
+        f"of {margin:g} points, first that applies: where the paper has a side (its difference d at least "
+        "0.5 points), holds (the interval excludes 0 on the paper's side and contains d), holds, smaller "
+        "than the paper's (d lies beyond it), holds, larger than the paper's (d lies between 0 and it), "
+        "reversed (it excludes 0 on the other side); where the paper has no side (no difference printed, or "
+        f"one below 0.5 points), higher or lower (it excludes 0); {no_difference(margin)} (it lies within "
+        f"±{margin:g}); smaller than the paper's (it contains 0 and excludes d); cannot tell."
+    )
+
+
+def ablation_intro(margin: float) -> str:
+    return (
+        "For each comparison the paper draws and each cell: other − base in percentage points, the paper's "
+        "(as printed) and ours (the difference of the two rows' means, with the 95% interval of the "
+        "differences of their independent bootstrap replicates), and the verdict. "
+        + verdict_rules(margin)
+        + " '–': no episodes."
+    )
 
 
 def _ablation_header() -> list[str]:
@@ -217,18 +231,18 @@ def ablation_rows(result: TableResult) -> list[list[str]]:
 
 
 def verdict_counts(result: TableResult) -> str:
-    """'SPL: holds 3, reversed 1, cannot tell 6; SR: ...' over every comparison and cell."""
-    return _counts(result.statistics().comparisons, VERDICTS)
+    """'SPL: holds 3, ..., cannot tell 6; SR: ...' over every comparison and cell."""
+    return _counts(result.statistics().comparisons, verdicts(result.spec.protocol.margin))
 
 
 def _counts(items, verdicts: tuple[str, ...]) -> str:
-    """'SPL: holds 3, ...; SR: ...': how many of `items` (each with a metric and a verdict, None
-    where it has no episodes) have each of `verdicts`, per metric."""
+    """'SPL: 3 holds; 0 reversed; ... . SR: ...': how many of `items` (each with a metric and a verdict,
+    None where it has no episodes) have each of `verdicts`, per metric (a verdict may hold a comma)."""
     parts = []
     for metric in METRICS:
         found = [i.verdict for i in items if i.metric == metric and i.verdict]
-        parts.append(f"{metric}: " + ", ".join(f"{v} {found.count(v)}" for v in verdicts))
-    return "; ".join(parts)
+        parts.append(f"{metric}: " + "; ".join(f"{found.count(v)} {v}" for v in verdicts))
+    return ". ".join(parts)
 
 
 def _md_cell(text: str) -> str:
@@ -250,7 +264,7 @@ def to_markdown(result: TableResult) -> str:
     if _no_comparison_here(result):
         lines += ["", f"**Ablation check.** {NO_COMPARISON}"]
     elif result.spec.comparisons:
-        lines += ["", f"**Ablation check.** {ABLATION_INTRO}", ""]
+        lines += ["", f"**Ablation check.** {ablation_intro(result.spec.protocol.margin)}", ""]
         head = _ablation_header()  # comparison, cell, then per metric: paper, ours, verdict
         numbers = {i for i in range(2, len(head)) if (i - 2) % 3 != 2}
         lines += _markdown_table(head, ablation_rows(result), numeric=numbers)
@@ -296,7 +310,8 @@ def to_ablation_csv(result: TableResult) -> str:
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     none = "" if result.statistics().comparisons else NO_COMPARISON + " "
-    writer.writerow(["# Ablation check: " + none + ABLATION_INTRO + " " + caption(result)])
+    intro = ablation_intro(result.spec.protocol.margin)
+    writer.writerow(["# Ablation check: " + none + intro + " " + caption(result)])
     writer.writerow(
         ["base", "other", "column", "kind", "metric", "paper_base", "paper_other", "paper_difference"]
         + ["difference", "ci_low", "ci_high", "verdict"]
@@ -367,7 +382,7 @@ def to_latex(result: TableResult) -> str:
         lines += [
             r"\begin{table*}",
             r"\centering",
-            r"\caption{Ablation check. " + _tex_escape(ABLATION_INTRO) + "}",
+            r"\caption{Ablation check. " + _tex_escape(ablation_intro(result.spec.protocol.margin)) + "}",
         ]
         lines += _tex_tabular("ll" + "rrl" * len(METRICS), head, ablation_rows(result))
         lines.append(r"\end{table*}")
@@ -411,8 +426,11 @@ def paired_intro(result: TableResult, base: TableResult) -> str:
         f"Paired difference: preset {result.preset.name!r} ({_tested(result)}) − preset "
         f"{base.preset.name!r} ({_tested(base)}), the same runs on the same fixed episodes, in percentage "
         "points: per row and cell, the mean over seeds of each seed's mean per-episode difference, with "
-        f"the 95% stratified bootstrap interval over seeds and episodes ({REPLICATES} replicates); higher "
-        "or lower: the interval lies above or below 0; cannot tell: it contains 0; '–': no episodes."
+        f"the 95% stratified bootstrap interval over seeds and episodes ({REPLICATES} replicates); at a "
+        f"margin of {result.spec.protocol.margin:g} points, higher or lower: the interval lies above or "
+        f"below 0; {no_difference(result.spec.protocol.margin)}: it lies within "
+        f"±{result.spec.protocol.margin:g}; cannot tell: neither. Each verdict reads one 95% interval, so "
+        "among many cells a few are wrong by chance. '–': no episodes."
     )
 
 
@@ -424,9 +442,9 @@ def _tested(result: TableResult) -> str:
     return f"{checkpoint}; success: Stop {'with the target visible' if visible else 'at the destination'}"
 
 
-def paired_verdict_counts(diffs: list[PairedDifference]) -> str:
-    """'SPL: cannot tell 6, higher 3, lower 1; SR: ...' (no side is the paper's)."""
-    return _counts(diffs, (CANNOT_TELL, HIGHER, LOWER))
+def paired_verdict_counts(diffs: list[PairedDifference], margin: float) -> str:
+    """'SPL: higher 3, lower 1, no difference beyond 3 2, cannot tell 6; SR: ...' (no side is the paper's)."""
+    return _counts(diffs, (HIGHER, LOWER, no_difference(margin), CANNOT_TELL))
 
 
 def to_paired_markdown(result: TableResult, base: TableResult, diffs: list[PairedDifference]) -> str:
@@ -444,7 +462,7 @@ def to_paired_markdown(result: TableResult, base: TableResult, diffs: list[Paire
                 cells.append(NONE if d.ours is None else f"{interval_text(d.ours, signed=True)} {d.verdict}")
             body.append([row, *cells])
         lines += ["", *_markdown_table(head, body, numeric=set(range(1, len(head))))]
-    lines += ["", f"Verdicts: {paired_verdict_counts(diffs)}."]
+    lines += ["", f"Verdicts: {paired_verdict_counts(diffs, result.spec.protocol.margin)}."]
     return "\n".join(lines) + "\n"
 
 

@@ -45,6 +45,9 @@ CELL_TITLES = {
     "unseen_kitchens/actionable": "actionable unseen kitchens",
 }
 METRICS = ("SPL", "SR")  # in the paper's order; a `paper` pair is [SPL, SR]
+# the largest margin of "no difference beyond" a spec may state: a wider one would call differences of
+# the size the paper reports for its components (3-9 SR points) no difference
+MAX_MARGIN = 3.0
 PERCENT = 100.0  # episode values are kept in percent: every mean and interval is then in percent
 
 
@@ -63,6 +66,8 @@ class Protocol:
     seen_cap: int
     unseen_cap: int
     checkpoint: str
+    # points: an interval of a difference within [-margin, margin] reads "no difference beyond MARGIN"
+    margin: float
 
 
 @dataclass(frozen=True)
@@ -192,14 +197,17 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
     _unknown(str(path), raw, {"protocol", "presets", "rows", "comparisons"})
     where = f"{path}: protocol"
     p = _field(str(path), raw, "protocol", dict)
-    _unknown(where, p, {"success_rule", "stop_ends", "seen_cap", "unseen_cap", "checkpoint"})
+    _unknown(where, p, {"success_rule", "stop_ends", "seen_cap", "unseen_cap", "checkpoint", "margin"})
     protocol = Protocol(
         success_rule=_field(where, p, "success_rule", str),
         stop_ends=_field(where, p, "stop_ends", bool),
         seen_cap=_field(where, p, "seen_cap", int),
         unseen_cap=_field(where, p, "unseen_cap", int),
         checkpoint=_field(where, p, "checkpoint", str),
+        margin=float(_field(where, p, "margin", (int, float))),
     )
+    if not 0 <= protocol.margin <= MAX_MARGIN:
+        raise TableError(f"{where}.margin = {protocol.margin:g} must be 0..{MAX_MARGIN:g} points")
     if protocol.success_rule not in SUCCESS_RULES:
         raise TableError(f"{where}.success_rule = {protocol.success_rule!r}: choose one of {SUCCESS_RULES}")
     if (protocol.seen_cap, protocol.unseen_cap) != (SEEN_CAP, UNSEEN_CAP):

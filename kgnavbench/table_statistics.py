@@ -5,9 +5,11 @@ What Table I says is computed here, before anything is written: each job's episo
 the table (`TableResult`), and its statistics (`table_statistics`). A cell is the mean over seeds of
 each seed's episode mean, with a 95% stratified bootstrap interval over seeds and episodes
 (`intervals`), the paper's number beside it. Each comparison of the spec gets, per cell and metric,
-the paper's difference, ours with its interval, and a verdict (holds, reversed, cannot tell; higher or
-lower where the paper has no side). Two tables of the same runs and episodes (another checkpoint, or
-another success rule) are differenced row by row, episode by episode (`paired_differences`).
+the paper's difference, ours with its interval, and a verdict (`intervals.verdict`: holds, of the
+paper's size or not, reversed, higher or lower where the paper has no side, no difference beyond the
+spec's margin, smaller than the paper's, cannot tell). Two tables of the same runs and episodes
+(another checkpoint, or another success rule) are differenced row by row, episode by episode
+(`paired_differences`).
 """
 
 from __future__ import annotations
@@ -194,7 +196,7 @@ def table_statistics(result: TableResult, reps: int = REPLICATES) -> TableStatis
                         paper_other,
                         paper,
                         ours,
-                        verdict(paper, ours.low, ours.high) if ours else None,
+                        verdict(paper, ours.low, ours.high, result.spec.protocol.margin) if ours else None,
                     )
                 )
     return TableStatistics(cells, comparisons)
@@ -275,7 +277,8 @@ def paired_differences(
                 out.append(
                     PairedDifference(
                         r.row.name, cell, metric, interval,
-                        verdict(None, interval.low, interval.high) if interval else None,
+                        verdict(None, interval.low, interval.high, result.spec.protocol.margin)
+                        if interval else None,
                     )
                 )  # fmt: skip
     return out

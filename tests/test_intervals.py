@@ -11,8 +11,11 @@ from kgnavbench.intervals import (
     CANNOT_TELL,
     HIGHER,
     HOLDS,
+    HOLDS_LARGER,
+    HOLDS_SMALLER,
     LOWER,
     REVERSED,
+    SMALLER,
     Bootstrap,
     Interval,
     difference,
@@ -148,20 +151,47 @@ def test_two_rows_are_bootstrapped_independently():
     assert row_difference(per_seed, per_seed, reps=2000, seed=0) == interval  # deterministic
 
 
-def test_verdicts():
-    # holds: the interval is wholly on the paper's side of 0
-    assert verdict(4.3, 1.0, 6.0) == HOLDS == "holds"
-    assert verdict(-0.6, -5.0, -0.5) == HOLDS
-    # reversed: wholly on the other side
-    assert verdict(4.3, -6.0, -1.0) == REVERSED == "reversed"
-    assert verdict(-0.6, 0.5, 5.0) == REVERSED
-    # cannot tell: the interval holds 0 (an end at 0 included)
-    assert verdict(4.3, -1.0, 6.0) == CANNOT_TELL == "cannot tell"
-    assert verdict(4.3, 0.0, 6.0) == CANNOT_TELL
-    assert verdict(-4.3, -6.0, 0.0) == CANNOT_TELL
-    assert verdict(None, -1.0, 6.0) == CANNOT_TELL
-    # the paper has no side (no difference, or under half a point: -0.03 claims nothing): ours alone
-    assert verdict(None, 1.0, 6.0) == HIGHER == "higher"
-    assert verdict(0.0, -6.0, -1.0) == LOWER == "lower"
-    assert verdict(-0.03, -5.0, -0.5) == LOWER
-    assert verdict(0.49, 0.5, 5.0) == HIGHER
+def test_verdicts_in_their_order_of_precedence():
+    """Each verdict on hand-made intervals [low, high] against the paper's difference d, margin 3."""
+    m = 3.0
+    # the paper has a side, the interval excludes 0 on it: holds (contains d) ...
+    assert verdict(4.3, 1.0, 6.0, m) == HOLDS == "holds"
+    assert verdict(-0.6, -5.0, -0.5, m) == HOLDS
+    assert verdict(4.3, 4.3, 6.0, m) == HOLDS  # d at an end is inside
+    # ... smaller than the paper's (d beyond the interval, further from 0) ...
+    assert verdict(8.53, 1.0, 6.0, m) == HOLDS_SMALLER == "holds, smaller than the paper's"
+    assert verdict(-8.0, -6.0, -1.0, m) == HOLDS_SMALLER
+    # ... larger than the paper's (d between 0 and the interval)
+    assert verdict(2.3, 3.0, 9.0, m) == HOLDS_LARGER == "holds, larger than the paper's"
+    assert verdict(-0.6, -9.0, -1.0, m) == HOLDS_LARGER
+    # reversed: it excludes 0 on the other side, whatever its size (inside the margin too)
+    assert verdict(4.3, -6.0, -1.0, m) == REVERSED == "reversed"
+    assert verdict(-0.6, 0.5, 2.0, m) == REVERSED
+    # the paper has no side (no difference, or under half a point: -0.03 claims nothing): ours alone,
+    # before the margin
+    assert verdict(None, 1.0, 6.0, m) == HIGHER == "higher"
+    assert verdict(0.0, -6.0, -1.0, m) == LOWER == "lower"
+    assert verdict(-0.03, -2.5, -0.5, m) == LOWER
+    assert verdict(0.49, 0.5, 2.0, m) == HIGHER
+    # no difference beyond the margin: the interval contains 0 and lies within [-3, 3]
+    assert verdict(8.53, -2.9, 2.9, m) == "no difference beyond 3"
+    assert verdict(None, -3.0, 3.0, m) == "no difference beyond 3"  # the margin's ends are inside
+    assert verdict(2.3, 0.0, 3.0, m) == "no difference beyond 3"  # an end at 0 contains 0
+    assert verdict(0.0, 0.0, 0.0, m) == "no difference beyond 3"
+    assert verdict(1.0, -1.0, 1.0, 1.5) == "no difference beyond 1.5"
+    # smaller than the paper's: the paper has a side, the interval contains 0, excludes d, is wider
+    assert verdict(8.53, -2.9, 4.4, m) == SMALLER == "smaller than the paper's"
+    assert verdict(-8.0, -4.0, 0.0, m) == SMALLER
+    assert verdict(2.3, -3.5, 2.0, m) == SMALLER
+    # cannot tell: it contains 0 and d (or the paper has no side), and reaches beyond the margin
+    assert verdict(4.3, -1.0, 6.0, m) == CANNOT_TELL == "cannot tell"
+    assert verdict(4.3, 0.0, 6.0, m) == CANNOT_TELL
+    assert verdict(-4.3, -6.0, 0.0, m) == CANNOT_TELL
+    assert verdict(None, -1.0, 6.0, m) == CANNOT_TELL
+    assert verdict(0.2, -3.5, 1.0, m) == CANNOT_TELL  # no side: never smaller than the paper's
+    # a margin of 0: only an interval of exactly 0 reads no difference
+    assert verdict(None, -0.1, 0.1, 0.0) == CANNOT_TELL
+    with pytest.raises(ValueError, match="low end"):
+        verdict(1.0, 2.0, 1.0, m)
+    with pytest.raises(ValueError, match="margin"):
+        verdict(1.0, 0.0, 1.0, -1.0)

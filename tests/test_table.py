@@ -119,6 +119,13 @@ UNSEEN_TARGETS = '[presets.{0}]\nunseen_target_kitchens = ["{1}"]\n'
             "protocol.success_rule",
         ),
         (lambda t: t.replace("seen_cap = 100", "seen_cap = 50"), "seen_cap/unseen_cap"),
+        (lambda t: t.replace("\nmargin = 3\n", "\nmargin = 5\n"), "protocol.margin = 5 must be 0..3 points"),
+        (lambda t: t.replace("\nmargin = 3\n", "\nmargin = -1\n"), "protocol.margin = -1 must be 0..3"),
+        (lambda t: t.replace("\nmargin = 3\n", "\n"), "protocol.margin is missing"),
+        (
+            lambda t: t.replace("\nmargin = 3\n", '\nmargin = "3"\n'),
+            "protocol.margin = '3' must be int or float",
+        ),
         (lambda t: t.replace("stop_ends = true", 'stop_ends = "yes"'), "protocol.stop_ends"),
         (lambda t: t.replace('checkpoint = "best_val_sr"', 'checkpoint = "first"'), "protocol.checkpoint"),
         (
@@ -375,7 +382,7 @@ def test_a_paired_difference_is_episode_by_episode_and_refuses_other_runs_or_epi
     """`paired_differences`: a table minus another of the same runs and episodes (the final weights
     against the rule's checkpoint): each episode's value minus the same episode's, so a row whose every
     episode moves from failure to success differs by exactly +100 [100, 100] (higher), an unchanged one
-    by 0 [0, 0] (cannot tell); a preset of other runs, or other episodes, is refused."""
+    by 0 [0, 0] (no difference beyond the margin); a preset of other runs, or other episodes, is refused."""
     from kgnavbench.table import to_paired_csv, to_paired_markdown
     from kgnavbench.table_statistics import paired_differences
 
@@ -392,14 +399,17 @@ def test_a_paired_difference_is_episode_by_episode_and_refuses_other_runs_or_epi
     moved = diffs[("+KG", "seen_seen/static", "SR")]
     assert (moved.ours.estimate, moved.ours.low, moved.ours.high, moved.verdict) == (100, 100, 100, "higher")
     same = diffs[("+KG+Attention", "seen_seen/static", "SR")]
-    assert (same.ours.estimate, same.ours.low, same.ours.high, same.verdict) == (0, 0, 0, "cannot tell")
+    assert (same.ours.estimate, same.ours.low, same.ours.high) == (0, 0, 0)
+    assert same.verdict == "no difference beyond 3"
     assert diffs[("+KG", "unseen_kitchens/static", "SR")].ours.estimate == 0  # its successes stayed
     assert diffs[("FF A3C", "unseen_kitchens/static", "SR")].ours is None  # no episodes: '–'
     md = to_paired_markdown(result, base, list(diffs.values()))
     assert "preset 'quick-last' (last.pt: the final weights; success: Stop at the destination)" in md
     assert "| +KG | +100.0 [+100.0, +100.0] higher |" in md
     rows = list(csv.DictReader(to_paired_csv(result, base, list(diffs.values())).splitlines()[1:]))
-    assert len(rows) == 40 and {r["verdict"] for r in rows} <= {"higher", "lower", "cannot tell", ""}
+    assert len(rows) == 40
+    assert {r["verdict"] for r in rows} <= {"higher", "lower", "no difference beyond 3", "cannot tell", ""}
+    assert "margin of 3 points" in md
     other_runs = fake_result()
     other_runs.preset = dataclasses.replace(other_runs.preset, frames=2000)
     with pytest.raises(TableError, match="differ in frames: not the same runs"):
@@ -460,13 +470,15 @@ def test_the_markdown_shows_intervals_the_papers_numbers_and_the_ablation_check(
         "+75.0 [+50.0, +100.0]",
         "higher",
     ]
-    # 41.09 - 32.56 = +8.53; ours 0 [0, 0] holds 0: cannot tell
-    assert checks["static unseen kitchens"][5:] == ["+8.53", "+0.0 [+0.0, +0.0]", "cannot tell"]
+    # 41.09 - 32.56 = +8.53; ours 0 [0, 0], within the spec's margin of 3 points: no difference
+    assert checks["static unseen kitchens"][5:] == ["+8.53", "+0.0 [+0.0, +0.0]", "no difference beyond 3"]
     assert checks["static seen/unseen"][2:] == ["+0.79", "–", "–", "+2.30", "–", "–"]  # no episodes
-    assert (
-        "Verdicts: SPL: holds 0, reversed 0, cannot tell 1, higher 1, lower 0; "
-        "SR: holds 0, reversed 0, cannot tell 1, higher 1, lower 0." in md
+    counts = (
+        "0 holds; 0 holds, smaller than the paper's; 0 holds, larger than the paper's; 0 reversed; 1 higher; "
+        "0 lower; 1 no difference beyond 3; 0 smaller than the paper's; 0 cannot tell"
     )
+    assert f"Verdicts: SPL: {counts}. SR: {counts}." in md
+    assert "at a margin of 3 points" in md
 
 
 def _csv_rows(text: str) -> list[dict]:
@@ -539,7 +551,7 @@ def test_the_ablation_csv():
     assert (unseen["paper_difference"], unseen["difference"], unseen["verdict"]) == (
         "8.53",
         "0",
-        "cannot tell",
+        "no difference beyond 3",
     )
     nothing = by[("seen_unseen", "static", "SR")]
     assert (nothing["paper_difference"], nothing["difference"], nothing["verdict"]) == ("2.3", "", "")
