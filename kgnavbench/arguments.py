@@ -531,6 +531,13 @@ def table_arguments(sub) -> argparse.ArgumentParser:
         "episode by episode, with intervals: table1-<preset>-against-<PRESET>.md and .csv",
     )
     p.add_argument(
+        "--verdicts-only",
+        action="store_true",
+        help="recompute the verdicts of the preset's written tables in --out (its ablation CSV, and "
+        "the ablation check of its .md and .tex) from the intervals the ablation CSV holds, under the "
+        "spec's rules and margin: nothing trained, evaluated or assembled",
+    )
+    p.add_argument(
         "--archive",
         type=Path,
         metavar="DIR",

@@ -386,6 +386,28 @@ def cmd_table(args: argparse.Namespace) -> int:
 
     spec = load_spec(args.spec or SPEC_FILE)
     spec.preset(args.preset)  # an unknown preset is refused before anything runs
+    if args.verdicts_only:
+        from .table import reverdict_tables
+
+        flags = {
+            "--jobs": args.jobs,
+            "--job": args.job is not None,
+            "--train-only": args.train_only,
+            "--against": args.against is not None,
+            "--row": bool(args.row),
+            "--trained": args.trained is not None,
+            "--archive": args.archive is not None,
+            "--ray": bool(args.ray),
+        }
+        given = [flag for flag, on in flags.items() if on]
+        if given:
+            raise UsageError(
+                f"--verdicts-only rewrites written tables and runs nothing: not with {', '.join(given)}"
+            )
+        arguments.writable_folder(args.out or spec.path.parent, "--out")
+        for path in reverdict_tables(spec, args.preset, args.out or spec.path.parent):
+            print(f"wrote {path}")
+        return 0
     device = arguments.device_name(args.device)
     assembles = not args.jobs and args.job is None and not args.train_only
     common: tuple[str, ...] = ()  # --against: the rows both presets run

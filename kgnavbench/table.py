@@ -30,6 +30,7 @@ from .intervals import (
     REPLICATES,
     Interval,
     no_difference,
+    verdict,
     verdicts,
 )
 from .jobs import (
@@ -50,10 +51,11 @@ from .table_spec import (
     CELL_TITLES,
     CELLS,
     METRICS,
+    Comparison,
     TableError,
     TableSpec,
 )
-from .table_statistics import PairedDifference, RowResult, TableResult, paper_value
+from .table_statistics import ComparisonStatistics, PairedDifference, RowResult, TableResult, paper_value
 
 
 def run_table(
@@ -212,9 +214,13 @@ def _ablation_header() -> list[str]:
 
 def ablation_rows(result: TableResult) -> list[list[str]]:
     """One line per comparison and cell: per metric the paper's difference, ours and the verdict."""
-    by_key = {(s.comparison, s.cell, s.metric): s for s in result.statistics().comparisons}
+    return _ablation_lines(result.spec.comparisons, result.statistics().comparisons)
+
+
+def _ablation_lines(comparisons, statistics: list[ComparisonStatistics]) -> list[list[str]]:
+    by_key = {(s.comparison, s.cell, s.metric): s for s in statistics}
     lines = []
-    for comparison in result.spec.comparisons:
+    for comparison in comparisons:
         for cell in CELL_KEYS:
             if (comparison, cell, METRICS[0]) not in by_key:
                 continue
@@ -264,12 +270,18 @@ def to_markdown(result: TableResult) -> str:
     if _no_comparison_here(result):
         lines += ["", f"**Ablation check.** {NO_COMPARISON}"]
     elif result.spec.comparisons:
-        lines += ["", f"**Ablation check.** {ablation_intro(result.spec.protocol.margin)}", ""]
-        head = _ablation_header()  # comparison, cell, then per metric: paper, ours, verdict
-        numbers = {i for i in range(2, len(head)) if (i - 2) % 3 != 2}
-        lines += _markdown_table(head, ablation_rows(result), numeric=numbers)
-        lines += ["", f"Verdicts: {verdict_counts(result)}."]
+        statistics = result.statistics().comparisons
+        lines += _ablation_markdown(result.spec.comparisons, statistics, result.spec.protocol.margin)
     return "\n".join(lines) + "\n"
+
+
+def _ablation_markdown(comparisons, statistics: list[ComparisonStatistics], margin: float) -> list[str]:
+    """The markdown ablation check: its intro, a line per comparison and cell, the verdicts counted."""
+    lines = ["", f"**Ablation check.** {ablation_intro(margin)}", ""]
+    head = _ablation_header()  # comparison, cell, then per metric: paper, ours, verdict
+    numbers = {i for i in range(2, len(head)) if (i - 2) % 3 != 2}
+    lines += _markdown_table(head, _ablation_lines(comparisons, statistics), numeric=numbers)
+    return lines + ["", f"Verdicts: {_counts(statistics, verdicts(margin))}."]
 
 
 def _number(value: float | None) -> str:
@@ -307,16 +319,23 @@ def to_csv(result: TableResult) -> str:
 def to_ablation_csv(result: TableResult) -> str:
     """Tidy: one line per comparison, cell and metric: the paper's two values and difference, ours with
     its 95% interval, the verdict (empty where we have no episodes)."""
-    out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
     none = "" if result.statistics().comparisons else NO_COMPARISON + " "
     intro = ablation_intro(result.spec.protocol.margin)
-    writer.writerow(["# Ablation check: " + none + intro + " " + caption(result)])
-    writer.writerow(
-        ["base", "other", "column", "kind", "metric", "paper_base", "paper_other", "paper_difference"]
-        + ["difference", "ci_low", "ci_high", "verdict"]
+    return _ablation_csv(
+        "# Ablation check: " + none + intro + " " + caption(result), result.statistics().comparisons
     )
-    for s in result.statistics().comparisons:
+
+
+ABLATION_CSV_FIELDS = ["base", "other", "column", "kind", "metric", "paper_base", "paper_other"]
+ABLATION_CSV_FIELDS += ["paper_difference", "difference", "ci_low", "ci_high", "verdict"]
+
+
+def _ablation_csv(header: str, statistics: list[ComparisonStatistics]) -> str:
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow([header])
+    writer.writerow(ABLATION_CSV_FIELDS)
+    for s in statistics:
         column, _, kind = s.cell.partition("/")
         i = s.ours
         writer.writerow(
@@ -326,6 +345,70 @@ def to_ablation_csv(result: TableResult) -> str:
             + [_number(i.high if i else None), s.verdict or ""]
         )
     return out.getvalue()
+
+
+def reverdict_tables(spec: TableSpec, preset_name: str, out_dir: Path | str) -> list[Path]:
+    """The verdicts of a preset's written tables recomputed under the spec's rules and margin, from the
+    intervals its ablation CSV holds (6 significant digits), nothing trained or evaluated: the CSV's
+    verdicts and header, and the ablation check of its .md and .tex where they exist (their main table
+    is kept as written). For tables whose runs or evaluations are not at hand (the quick tables, whose
+    evaluations are not kept), after a change of the verdict rules."""
+    preset = spec.preset(preset_name)
+    stem = Path(out_dir) / ("table1" if preset.name == "quick" else f"table1-{preset.name}")
+    path = stem.parent / f"{stem.name}-ablation.csv"
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise TableError(f"cannot read {path}: {getattr(e, 'strerror', None) or e}") from e
+    old_intro_end = "'–': no episodes. "  # the intro's last words, then the table's caption
+    if len(lines) < 2 or not lines[0].startswith('"# Ablation check: ') or old_intro_end not in lines[0]:
+        raise TableError(f"{path}: not an ablation CSV kgnavbench wrote (its first line is no caption)")
+    header = next(csv.reader([lines[0]]))[0]
+    table_caption = header[header.index(old_intro_end) + len(old_intro_end) :]
+    none = NO_COMPARISON + " " if header.startswith("# Ablation check: " + NO_COMPARISON) else ""
+    margin = spec.protocol.margin
+    records = list(csv.DictReader(lines[1:]))
+    if not records and not none:
+        raise TableError(f"{path}: no comparison lines")
+    statistics = []
+    for n, r in enumerate(records, start=3):
+        try:
+            number = {k: float(r[k]) if r[k] else None for k in ABLATION_CSV_FIELDS[5:11]}
+            cell = f"{r['column']}/{r['kind']}"
+            if cell not in CELL_KEYS or r["metric"] not in METRICS:
+                raise ValueError(f"cell {cell!r}, metric {r['metric']!r}")
+        except (KeyError, TypeError, ValueError) as e:
+            raise TableError(f"{path}, line {n}: not a line of an ablation CSV ({e})") from e
+        ours = None
+        if number["difference"] is not None:
+            ours = Interval(number["difference"], number["ci_low"], number["ci_high"])
+        paper = number["paper_difference"]
+        judged = verdict(paper, ours.low, ours.high, margin) if ours else None
+        statistics.append(
+            ComparisonStatistics(
+                Comparison(r["base"], r["other"]), cell, r["metric"], number["paper_base"],
+                number["paper_other"], paper, ours, judged,
+            )
+        )  # fmt: skip
+    comparisons = list(dict.fromkeys(s.comparison for s in statistics))
+    intro = ablation_intro(margin)
+    files = [
+        (path.name, _ablation_csv("# Ablation check: " + none + intro + " " + table_caption, statistics))
+    ]
+    md, tex = stem.parent / f"{stem.name}.md", stem.parent / f"{stem.name}.tex"
+    if none:  # no comparison in the table: its .md and .tex say so, with nothing to recompute
+        return _write_files(stem.parent, tuple(files))
+    if md.exists() and "\n\n**Ablation check.** " in md.read_text(encoding="utf-8"):
+        text = md.read_text(encoding="utf-8")
+        text = text[: text.index("\n\n**Ablation check.** ")]
+        files.append(
+            (md.name, "\n".join([text, *_ablation_markdown(comparisons, statistics, margin)]) + "\n")
+        )
+    if tex.exists() and TEX_ABLATION in tex.read_text(encoding="utf-8"):
+        text = tex.read_text(encoding="utf-8")
+        text = text[: text.index(TEX_ABLATION)]
+        files.append((tex.name, text + "\n".join(_ablation_latex(comparisons, statistics, margin)) + "\n"))
+    return _write_files(stem.parent, tuple(files))
 
 
 TEX_SPECIAL = {
@@ -374,19 +457,24 @@ def to_latex(result: TableResult) -> str:
     if _no_comparison_here(result):
         lines.append("% Ablation check. " + NO_COMPARISON)
     elif result.spec.comparisons:
-        metrics = " & ".join(rf"\multicolumn{{3}}{{c}}{{{metric}}}" for metric in METRICS)
-        head = [
-            rf" & & {metrics} \\",
-            "comparison & cell & " + " & ".join(["paper & ours & verdict"] * len(METRICS)) + r" \\",
-        ]
-        lines += [
-            r"\begin{table*}",
-            r"\centering",
-            r"\caption{Ablation check. " + _tex_escape(ablation_intro(result.spec.protocol.margin)) + "}",
-        ]
-        lines += _tex_tabular("ll" + "rrl" * len(METRICS), head, ablation_rows(result))
-        lines.append(r"\end{table*}")
+        statistics = result.statistics().comparisons
+        lines += _ablation_latex(result.spec.comparisons, statistics, result.spec.protocol.margin)
     return "\n".join(lines) + "\n"
+
+
+TEX_ABLATION = r"\begin{table*}" + "\n" + r"\centering" + "\n" + r"\caption{Ablation check. "
+
+
+def _ablation_latex(comparisons, statistics: list[ComparisonStatistics], margin: float) -> list[str]:
+    """The LaTeX ablation check: a table* whose caption is its intro (TEX_ABLATION starts it)."""
+    metrics = " & ".join(rf"\multicolumn{{3}}{{c}}{{{metric}}}" for metric in METRICS)
+    head = [
+        rf" & & {metrics} \\",
+        "comparison & cell & " + " & ".join(["paper & ours & verdict"] * len(METRICS)) + r" \\",
+    ]
+    lines = [TEX_ABLATION + _tex_escape(ablation_intro(margin)) + "}"]
+    lines += _tex_tabular("ll" + "rrl" * len(METRICS), head, _ablation_lines(comparisons, statistics))
+    return lines + [r"\end{table*}"]
 
 
 def write_table(result: TableResult, out_dir: Path | str) -> list[Path]:

@@ -1241,3 +1241,40 @@ def test_training_is_announced_with_its_cost_before_it_starts(tmp_path):
     lines.clear()
     table_module.announce_training(preset, jobs[:1], tmp_path, "cpu", lines.append)
     assert lines == []
+
+
+def test_verdicts_only_recomputes_a_written_tables_verdicts_as_the_writer_would(tmp_path, capsys):
+    """`table --verdicts-only`: the verdicts of written tables recomputed from their ablation CSV under
+    the spec's margin equal what the writer gives from the episodes under that margin; the main table
+    is kept; a damaged CSV or another option is one line, and nothing is rewritten."""
+    wide = tmp_path / "wide.toml"
+    wide.write_text(SPEC_FILE.read_text().replace("\nmargin = 3\n", "\nmargin = 0\n"))
+    old = fake_result()
+    old.spec = load_spec(wide)
+    written = tmp_path / "written"
+    written.mkdir()
+    write_table(old, written)
+    ablation = (written / "table1-ablation.csv").read_text()
+    assert "margin of 0 points" in ablation and ",no difference beyond 0\n" in ablation
+    expected = tmp_path / "expected"
+    expected.mkdir()
+    write_table(fake_result(), expected)  # the committed spec: margin 3
+    assert main(["table", "--verdicts-only", "--out", str(written)]) == 0
+    for name in ("table1-ablation.csv", "table1.md", "table1.tex", "table1.csv"):
+        # (the captions hold the wall time and revision of the table that was written: the same here)
+        assert (written / name).read_text() == (expected / name).read_text(), name
+    assert ",no difference beyond 3\n" in (written / "table1-ablation.csv").read_text()
+    assert "wrote " in capsys.readouterr().out
+    # another option, or a damaged CSV: one line, exit 2, nothing rewritten
+    before = {p.name: p.read_bytes() for p in written.iterdir()}
+    assert main(["table", "--verdicts-only", "--out", str(written), "--row", "IL"]) == 2
+    assert (
+        "--verdicts-only rewrites written tables and runs nothing: not with --row" in capsys.readouterr().err
+    )
+    (written / "table1-ablation.csv").write_text(ablation.replace(",75,", ",seventy,", 1))
+    assert main(["table", "--verdicts-only", "--out", str(written)]) == 2
+    err = capsys.readouterr().err
+    assert "table1-ablation.csv, line" in err and err.count("\n") == 1
+    assert main(["table", "--verdicts-only", "--preset", "smoke", "--out", str(written)]) == 2
+    assert "table1-smoke-ablation.csv" in capsys.readouterr().err
+    assert (written / "table1.md").read_bytes() == before["table1.md"]
