@@ -17,11 +17,17 @@ have a co-visibility edge, it prints:
   for at least 2.0); and the 3 nearest neighbours of 10 named types;
 - on FloorPlan1, over all its targets and all its states (the view of every state toward each
   target's image): the distinct vectors per target of what the graph hands the LSTM (distinct at
-  1e-3), and with attention the distinct attention vectors per target, their mean entropy (nats,
-  states with objects in view or target), and, in the states where objects of the view alone and of
-  the target alone are both present, the mean share of the attention on the target-only objects;
-  with several softmaxes (heads, or one over each image's objects), those of their mean, and each
-  one's distinct vectors and entropy.
+  1e-3), and with attention the distinct attention vectors per target and their mean entropy (nats,
+  states with objects in view or target); with several softmaxes (heads, or one over each image's
+  objects), those of their mean, and each one's distinct vectors and entropy; with one softmax over
+  the target image's objects (attention_over "each"), the weight it puts on the target's own object
+  type, against a uniform softmax's (1 / the target image's objects). (A share of the attention's
+  mean on the target-only objects is no criterion there: with two averaged softmaxes it is at most 0.5
+  by construction.)
+
+Every layer's features come from the model's own code (`KnowledgeGraph.layer_features`, the path of
+`node_features`); tests/test_models.py checks that the last layer is `node_features` on a shipped
+checkpoint.
 
 `--edges EDGES` also prints the GCN figures for fresh weights on the checkpoint's counts weighted as
 EDGES (binary, ppmi, counts): what another graph would give before training.
@@ -78,11 +84,10 @@ def mean_pairwise_cosine(x: torch.Tensor) -> float:
 
 
 def layers(kg, a_hat: torch.Tensor) -> list[torch.Tensor]:
-    """Each GCN layer's node features (models.KnowledgeGraph.node_features, layer by layer)."""
-    h1 = F.relu(a_hat @ kg.w0)
-    h2 = F.relu(a_hat @ (h1 @ kg.w1))
-    h3 = F.relu(a_hat @ (h2 @ kg.w2))
-    return [h1, h2, h3]
+    """Each GCN layer's node features, from the model's own code (`KnowledgeGraph.layer_features`, the
+    path `node_features` takes, PairNorm included where the config has it): never a copy of it, which
+    would measure a network the model does not compute."""
+    return kg.layer_features(a_hat)
 
 
 def related_types() -> set[frozenset[str]]:
@@ -129,8 +134,11 @@ def attention_figures(net, covis, space) -> dict[str, float]:
         graph = net.graph_terms(covis.adjacency(net.cfg.kg_edges))
         features, objects = space.features_t, space.objects_t
         hidden = net.cfg.hidden
-        channel, attention, entropy, target_share = [], [], [], []
+        channel, attention, entropy, own, uniform = [], [], [], [], []
         k = net.cfg.softmaxes() if net.cfg.kg == "attention" and net.cfg.kg_readout == "nodes" else 1
+        # attention_over "each": the first heads over the view's objects, the others over the target's
+        each = k > 1 and net.cfg.attention_over == "each"
+        target_softmax = net.cfg.attention_heads if each else None
         per_softmax = [([], []) for _ in range(k)] if k > 1 else []  # (distinct, entropies) each
         for r, dest in enumerate(space.destination):
             lo, hi = space.offsets[space.target_kitchen[r]], space.offsets[space.target_kitchen[r] + 1]
@@ -153,9 +161,11 @@ def attention_figures(net, covis, space) -> dict[str, float]:
             some = (r_t | r_g).any(1)
             ent = -(a * a.clamp_min(1e-30).log()).sum(1)
             entropy += ent[some].tolist()
-            t_only, v_only = r_g & ~r_t, r_t & ~r_g
-            mixed = t_only.any(1) & v_only.any(1)
-            target_share += (a * t_only).sum(1)[mixed].tolist()
+            if target_softmax is not None and bool(r_g[0, space.target_type[r]]):
+                # the target softmax's weight on the target's own object type, and a uniform one's
+                w = joint[:, hidden:].reshape(n, k, -1)[:, target_softmax].double()
+                own.append(w[:, int(space.target_type[r])].mean().item())
+                uniform.append(1.0 / r_g[0].sum().item())
             for j, (kinds, ents) in enumerate(per_softmax):
                 w = joint[:, hidden:].reshape(n, k, -1)[:, j].float()
                 some = w.sum(1) > 0.5  # a softmax over an empty set of objects is all zero
@@ -167,8 +177,9 @@ def attention_figures(net, covis, space) -> dict[str, float]:
             "attention": np.mean(attention),
             "attention_min": min(attention),
             "entropy": float(np.mean(entropy)),
-            "target_share": float(np.mean(target_share)) if target_share else float("nan"),
-            "mixed_states": len(target_share),
+            "target_own": float(np.mean(own)) if own else float("nan"),
+            "target_uniform": float(np.mean(uniform)) if uniform else float("nan"),
+            "own_targets": len(own),
             "per_softmax": [(np.mean(kinds), float(np.mean(ents))) for kinds, ents in per_softmax],
         }
     return out
@@ -272,10 +283,15 @@ def main() -> None:
             if "attention" in f:
                 print(
                     f"  attention: distinct vectors per target {f['attention']:.0f} (fewest "
-                    f"{f['attention_min']}), mean entropy {f['entropy']:.3f} nats, target-only share "
-                    f"{f['target_share']:.4f} over {f['mixed_states']:,} mixed states"
+                    f"{f['attention_min']}), mean entropy {f['entropy']:.3f} nats"
                     + (" (the mean of its softmaxes)" if f["per_softmax"] else "")
                 )
+                if f["own_targets"]:
+                    print(
+                        f"  the target softmax's weight on the target's own object: {f['target_own']:.3f} "
+                        f"(uniform over the target image's objects: {f['target_uniform']:.3f}), mean over "
+                        f"{f['own_targets']} targets and all their states"
+                    )
                 for j, (kinds, ent) in enumerate(f["per_softmax"]):
                     print(
                         f"    softmax {j}: distinct vectors per target {kinds:.0f}, "

@@ -253,10 +253,11 @@ def eval_arguments(sub) -> argparse.ArgumentParser:
     p.add_argument("--method", required=True, metavar="NAME", help="a plugin (see `kgnavbench methods`)")
     p.add_argument(
         "--success-rule",
-        choices=("destination", "visible"),
+        choices=("destination", "visible", "arrival"),
         default="destination",
         help="success = Stop at the target's destination, the paper's rule (default), or anywhere the "
-        "target is visible (SAVN's)",
+        "target is visible (SAVN's), or arriving at the destination by any action, Stop a no-op "
+        "(Zhu et al. 2017's; implies --stop-noop)",
     )
     p.add_argument("--stop-noop", action="store_true", help="a Stop that does not succeed is a no-op")
     p.add_argument("--split", choices=SPLITS, default="table", help="table = train + test kitchens (default)")

@@ -202,7 +202,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         method=args.method,
         options=tuple(sorted(options.items())),
         success_rule=args.success_rule,
-        stop_ends=not args.stop_noop,
+        stop_ends=not args.stop_noop and args.success_rule != "arrival",  # arrival: Stop is a no-op
         split=args.split,
         kitchens=tuple(arguments.kitchen_list(args.kitchens)) if args.kitchens is not None else (),
         episodes_per_target=args.episodes,

@@ -29,7 +29,9 @@ Rewards: -0.01 every step; +0.01 the first time the agent reaches a goal state; 
 Termination: Stop ends the episode (stop_ends=False: a Stop that does not succeed is a no-op).
     Success (the paper's, default success_rule="destination") = Stop at the target's destination, the
     state its image shows; success_rule="visible" (SAVN's) = Stop in any state where the target is
-    visible, receptacle open or not. Goal states (for the +0.01) follow the rule in force.
+    visible, receptacle open or not; success_rule="arrival" (Zhu et al. 2017's) = arriving at the
+    destination, by any action, ends the episode in success, and Stop is a no-op (stop_ends=False).
+    Goal states (for the +0.01) follow the rule in force (`tasks.outcome` decides success).
     Truncation at max_steps (5000 in training; per episode in evaluation).
 Infos (per agent, every step): success, path_length (actions, Stop not counted), episode_length,
     shortest_path (from the start, under the success rule), collisions, target, target_kind,
@@ -68,7 +70,7 @@ from .errors import KgnavbenchError
 from .graph import MOVES, OPEN, STOP, VIEW_SIZE, TaskError, expert_actions, goal_mask
 from .kitchens import object_types
 from .render import top_down_map
-from .tasks import SUCCESS_RULES, KitchenTasks, load_tasks
+from .tasks import SUCCESS_RULES, KitchenTasks, load_tasks, outcome
 from .world import ACTIONS
 
 STEP_REWARD = -0.01
@@ -115,18 +117,20 @@ class Transition(NamedTuple):
     truncated: np.ndarray  # not terminated, and the cap reached
 
 
-def transition(next_state, ok, goal, state, action, row, arrived, steps, cap, stop_ends: bool) -> Transition:
+def transition(
+    next_state, ok, goal, state, action, row, arrived, steps, cap, stop_ends: bool, success_rule="destination"
+) -> Transition:
     """The state-graph step: the one transition the PettingZoo env and the trainer's navigators both
     take. `next_state`, `ok` (S, 10): the graph's tables; `goal` (targets, S): goal states per target
     row; per agent its `state`, `action`, target `row`, whether it `arrived` at a goal state before,
-    the actions it took before this one (`steps`) and its `cap`. Moves, OpenObject (with the auto-close
-    of the graph), Stop, rewards and termination all come from here; the callers only keep counts."""
+    the actions it took before this one (`steps`) and its `cap`; `goal` follows `success_rule`, which
+    decides success and the episode's end (`tasks.outcome`). Moves, OpenObject (with the auto-close of
+    the graph), Stop, rewards and termination all come from here; the callers only keep counts."""
     nxt = next_state[state, action]
     stop = action == STOP
     on_goal = goal[row, nxt]
-    success = stop & on_goal
+    success, terminated = outcome(success_rule, stop, on_goal, stop_ends)
     first_arrival = on_goal & ~arrived
-    terminated = success | (stop & stop_ends)
     return Transition(
         next_state=nxt,
         stop=stop,
@@ -225,6 +229,8 @@ class NavigationEnv(ParallelEnv):
             raise EnvError(f"unknown observation {observation!r}; choose one of {OBSERVATION_FORMATS}")
         if success_rule not in SUCCESS_RULES:
             raise EnvError(f"unknown success_rule {success_rule!r}; choose one of {SUCCESS_RULES}")
+        if success_rule == "arrival" and stop_ends:
+            raise EnvError("success_rule='arrival' makes Stop a no-op: pass stop_ends=False")
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise EnvError(f"unknown render_mode {render_mode!r}; choose None or 'rgb_array'")
         n_agents = whole_number_in(n_agents, "n_agents", 1, MAX_AGENTS, EnvError)
@@ -498,6 +504,7 @@ class NavigationEnv(ParallelEnv):
             self._steps[idx],
             self._cap[idx],
             self.stop_ends,
+            self.success_rule,
         )
         # a Stop that fails: the episode ends, or (stop_ends=False) nothing happens at all
         nxt = t.next_state

@@ -145,6 +145,8 @@ class EvalConfig:
         checkpoint_name(self.checkpoint)
         if self.success_rule not in SUCCESS_RULES:
             raise EvalError(f"unknown success rule {self.success_rule!r}; choose one of {SUCCESS_RULES}")
+        if self.success_rule == "arrival" and self.stop_ends:
+            raise EvalError("the arrival rule makes Stop a no-op: stop_ends must be False (--stop-noop)")
         if self.split not in SPLITS:
             raise EvalError(f"unknown split {self.split!r}; choose one of {SPLITS}")
         if not 1 <= self.episodes_per_target <= EPISODES_PER_TARGET:
@@ -751,10 +753,12 @@ def evaluate(
 
 def describe(config: EvalConfig) -> str:
     stop = "Stop ends the episode" if config.stop_ends else "a wrong Stop is a no-op"
-    rule = "with the target visible" if config.success_rule == "visible" else "at the destination"
+    rule = "Stop with the target visible" if config.success_rule == "visible" else "Stop at the destination"
+    if config.success_rule == "arrival":
+        rule, stop = "arriving at the destination (Zhu et al.'s rule)", "Stop is a no-op"
     options = ", ".join(f"{k}={v}" for k, v in config.options)
     return (
-        f"{config.method}{f' ({options})' if options else ''} — success: Stop {rule}; {stop}; "
+        f"{config.method}{f' ({options})' if options else ''} — success: {rule}; {stop}; "
         f"{config.episodes_per_target} episodes per target, split {config.split}"
         + (
             f"; unseen targets in {', '.join(config.unseen_target_kitchens)} only"

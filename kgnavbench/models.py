@@ -294,9 +294,15 @@ class KnowledgeGraph(nn.Module):
 
     def node_features(self, a_hat: Tensor) -> Tensor:
         """H = the 3-layer GCN over Â (125, 125) -> (125, d)."""
-        h = F.relu(self.norm(a_hat @ self.w0))
-        h = F.relu(self.norm(a_hat @ (h @ self.w1)))
-        return F.relu(self.norm(a_hat @ (h @ self.w2)))
+        return self.layer_features(a_hat)[-1]
+
+    def layer_features(self, a_hat: Tensor) -> list[Tensor]:
+        """Each GCN layer's node features H(1), H(2), H(3) over Â, each (125, d), the norm of the
+        config (PairNorm or none) applied after each propagation: what `node_features` computes, layer
+        by layer, for the diagnostics (benchmarks/gcn_smoothing.py)."""
+        h1 = F.relu(self.norm(a_hat @ self.w0))
+        h2 = F.relu(self.norm(a_hat @ (h1 @ self.w1)))
+        return [h1, h2, F.relu(self.norm(a_hat @ (h2 @ self.w2)))]
 
     def q_terms(self, h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Q of a node whose GCN row is h (..., d): base + R_t D1 + R_g D2 -> base (d,), D1, D2 (..., d).

@@ -144,6 +144,9 @@ class TrainOptions:
     def check(self) -> None:
         if self.success_rule not in SUCCESS_RULES:
             raise TrainError(f"success_rule must be one of {SUCCESS_RULES}, not {self.success_rule!r}")
+        if self.success_rule == "arrival":  # (the trainer's navigators take the Stop-based rules only)
+            raise TrainError("success_rule 'arrival' is an evaluation rule (Zhu et al.'s): train under "
+                             "'destination' or 'visible'")  # fmt: skip
         if self.il_expert not in EXPERTS:
             raise TrainError(f"il_expert must be one of {EXPERTS}, not {self.il_expert!r}")
         positive = (

@@ -210,6 +210,8 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
         raise TableError(f"{where}.margin = {protocol.margin:g} must be 0..{MAX_MARGIN:g} points")
     if protocol.success_rule not in SUCCESS_RULES:
         raise TableError(f"{where}.success_rule = {protocol.success_rule!r}: choose one of {SUCCESS_RULES}")
+    if protocol.success_rule == "arrival" and protocol.stop_ends:
+        raise TableError(f"{where}: success_rule 'arrival' makes Stop a no-op: stop_ends must be false")
     if (protocol.seen_cap, protocol.unseen_cap) != (SEEN_CAP, UNSEEN_CAP):
         raise TableError(
             f"{where}: seen_cap/unseen_cap = {protocol.seen_cap}/{protocol.unseen_cap}, but the evaluation "

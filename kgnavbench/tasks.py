@@ -63,7 +63,9 @@ COMMON_ITEMS = (
     "Toaster",
 )
 N_TRAIN_KITCHENS, N_VAL_KITCHENS = 20, 5
-SUCCESS_RULES = ("visible", "destination")  # see Target.goals
+# see Target.goals and `outcome`: "destination" (the paper's words), "visible" (SAVN's), "arrival" (Zhu
+# et al. 2017's: arriving at the destination ends the episode in success, Stop a no-op)
+SUCCESS_RULES = ("visible", "destination", "arrival")
 SEEN_TARGETS_PER_KITCHEN = 7  # the paper: 140 training targets in 20 training kitchens
 EPISODES_PER_TARGET = 100
 MIN_START_DISTANCE = 10
@@ -94,11 +96,29 @@ class Target:
         """The states where Stop succeeds: 'destination' (the paper's rule) its destination only, the
         place its image shows; 'visible' (SAVN's) any state that shows it. The one place the success
         rules are spelled; the env, the trainer and the distances all ask here."""
-        if success_rule == "destination":
+        if success_rule in ("destination", "arrival"):
             return (self.destination,)
         if success_rule == "visible":
             return self.goal_states
         raise TaskError(f"unknown success rule {success_rule!r}; choose one of {SUCCESS_RULES}")
+
+
+def outcome(success_rule: str, stop, on_goal, stop_ends: bool):
+    """Whether a step succeeds and whether it ends the episode, from whether its action was Stop and
+    whether it leads onto a goal state of the rule (`Target.goals`): the one place success is decided
+    (the env's step and the trainer's navigators both ask here; arrays or bools alike).
+    'destination' and 'visible': success = Stop on a goal state; it ends the episode, and so does any
+    Stop when `stop_ends` (else a Stop that fails is a no-op). 'arrival' (Zhu et al. 2017): success =
+    arriving on the destination, whatever the action, and it ends the episode; Stop is a no-op
+    (`stop_ends` must be False)."""
+    if success_rule == "arrival":
+        if stop_ends:
+            raise TaskError("under the arrival rule Stop is a no-op: stop_ends must be False")
+        return on_goal, on_goal
+    if success_rule not in SUCCESS_RULES:
+        raise TaskError(f"unknown success rule {success_rule!r}; choose one of {SUCCESS_RULES}")
+    success = stop & on_goal
+    return success, success | (stop & stop_ends)
 
 
 def find_targets(graph: StateGraph) -> list[Target]:

@@ -273,9 +273,11 @@ class Navigators:
         kitchen: np.ndarray,
         stop_ends: bool = True,
         assigned: np.ndarray | None = None,
+        success_rule: str = "destination",  # the rule `space.goal` was built for (`tasks.outcome`)
     ):
         n = len(kitchen)
         self.space, self.stop_ends, self.n = space, stop_ends, n
+        self.success_rule = success_rule
         self.kitchen = np.asarray(kitchen, np.int64).copy()
         # each agent's own target row (the paper's one target per thread); None: drawn per episode
         self.assigned = None if assigned is None else np.asarray(assigned, np.int64).copy()
@@ -331,6 +333,7 @@ class Navigators:
             self.steps[sel],
             self.cap[sel],
             self.stop_ends,
+            self.success_rule,
         )
         self.state[sel] = t.next_state
         self.steps[sel] += 1
@@ -469,7 +472,10 @@ class Navigation:
             if not isinstance(value, (bool, np.bool_)):  # "false" is a true string
                 raise VecEnvError(f"{name} must be True or False, not {value!r}")
         space = build_space(names, targets, success_rule, pixels=views)
-        navigators = Navigators(space, np.arange(n) % len(names), stop_ends=bool(stop_ends))
+        if success_rule == "arrival" and stop_ends:
+            raise VecEnvError("success_rule='arrival' makes Stop a no-op: pass stop_ends=False")
+        kitchen = np.arange(n) % len(names)
+        navigators = Navigators(space, kitchen, stop_ends=bool(stop_ends), success_rule=success_rule)
         self._use(navigators, max_steps, views, observation)
 
     def _use(self, navigators: Navigators, max_steps, views: bool, observation: str = "dict") -> None:

@@ -360,6 +360,63 @@ def test_destination_rule_needs_the_destination(make_env, tasks, graph, egg_star
     assert run(env, [OPEN, STOP])[-1][3]["success"] is True
 
 
+def test_the_arrival_rule_ends_the_episode_on_arriving_and_stop_is_a_no_op(make_env, tasks, egg_start):
+    """Zhu et al.'s rule: arriving at the destination, by any action, is success and ends the episode
+    (no Stop); a Stop anywhere is a no-op; Stop ending episodes contradicts the rule and is refused."""
+    with pytest.raises(EnvError, match="arrival"):
+        make_env(success_rule="arrival")
+    env = make_env(success_rule="arrival", stop_ends=False)
+    apple = tasks.target(APPLE)
+    dist = tasks.distances(apple, "arrival")
+    assert (dist == tasks.distances(apple, "destination")).all()  # the same goal: the destination
+    for start in apple.starts[:3]:
+        shortest = int(dist[start])
+        _, infos = env.reset(options={"episodes": [episode(APPLE, start)]})
+        [(reward, term, trunc, info)] = run(env, [STOP])  # a Stop: nothing happens
+        assert (reward, term, trunc, info["success"]) == (pytest.approx(STEP_REWARD), False, False, False)
+        assert info["state"] == start and info["path_length"] == 0
+        info, rewards, terms = infos[A0], [], []
+        while env.agents:
+            assert info["expert_action"] != STOP  # the episode ends before a Stop is ever due
+            _, r, term, _, infos = env.step({A0: info["expert_action"]})
+            info = infos[A0]
+            rewards.append(r[A0])
+            terms.append(term[A0])
+        assert info["success"] is True and info["state"] == apple.destination
+        assert info["path_length"] == shortest and info["episode_length"] == shortest + 1
+        assert terms == [False] * (shortest - 1) + [True]
+        assert rewards[-1] == pytest.approx(STEP_REWARD + ARRIVAL_REWARD + SUCCESS_REWARD)
+    # the visible states that are not the destination are no success under it
+    egg = tasks.target(EGG)
+    env.reset(options={"episodes": [episode(EGG, egg_start)]})
+    [(_, term, _, info)] = run(env, [OPEN])
+    assert info["last_view_shows_target"] and info["state"] != egg.destination
+    assert (term, info["success"]) == (False, False)
+
+
+def test_success_is_decided_in_one_place_for_every_rule():
+    """tasks.outcome: (success, terminated) from (Stop?, on a goal state?) under each rule."""
+    from kgnavbench.tasks import TaskError, outcome
+
+    stop, goal = np.array([True, True, False, False]), np.array([True, False, True, False])
+    for rule in ("destination", "visible"):
+        success, ends = outcome(rule, stop, goal, True)
+        assert success.tolist() == [True, False, False, False] and ends.tolist() == [True, True, False, False]
+        success, ends = outcome(rule, stop, goal, False)
+        assert success.tolist() == [True, False, False, False] and ends.tolist() == [
+            True,
+            False,
+            False,
+            False,
+        ]
+    success, ends = outcome("arrival", stop, goal, False)
+    assert success.tolist() == [True, False, True, False] and ends.tolist() == success.tolist()
+    with pytest.raises(TaskError, match="stop_ends must be False"):
+        outcome("arrival", stop, goal, True)
+    with pytest.raises(TaskError, match="unknown success rule"):
+        outcome("nearby", stop, goal, True)
+
+
 def test_collisions_count_failed_moves_only(make_env, graph):
     env = make_env()
     closed = np.arange(graph.n_states) < graph.n_closed

@@ -617,3 +617,31 @@ def test_committed_encoder_file_exists():
     for key in ("seed", "epochs", "kitchens", "val"):
         assert key in meta
     assert len(meta["kitchens"]) == 20 and meta["val"]["mAP"] > meta["val_random_init"]["mAP"]
+
+
+def test_the_graph_diagnostic_measures_the_models_own_features():
+    """benchmarks/gcn_smoothing.py's layers are the model's: on shipped +KG and +KG+Attention
+    checkpoints (PairNorm after each layer), its last layer is `KnowledgeGraph.node_features` exactly,
+    and PairNorm is in them (without it the layers differ)."""
+    import importlib.util
+    from pathlib import Path
+
+    from kgnavbench.runs import load_checkpoint
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("gcn_smoothing", root / "benchmarks" / "gcn_smoothing.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    for run in ("kg_attention-0efa248388", "kg_attention-49df282f6f"):  # +KG and +KG+Attention, seed 0
+        ck = load_checkpoint(root / "zoo" / run / "best.pt")
+        covis = models.CoVisibility()
+        covis.load_state_dict(ck["covis"])
+        net = models.make_model(models.ModelConfig(**ck["model_config"]))
+        net.load_state_dict(ck["model"])
+        assert net.cfg.gcn_norm == "pair"
+        a_hat = models.normalized_adjacency(covis.adjacency(net.cfg.kg_edges))
+        with torch.no_grad():
+            ours = bench.layers(net.kg, a_hat)
+            assert len(ours) == 3 and torch.equal(ours[-1], net.kg.node_features(a_hat))
+            bare = F.relu(a_hat @ net.kg.w0)  # the first layer without PairNorm: not the model's
+            assert not torch.allclose(ours[0], bare)

@@ -119,6 +119,10 @@ UNSEEN_TARGETS = '[presets.{0}]\nunseen_target_kitchens = ["{1}"]\n'
             "protocol.success_rule",
         ),
         (lambda t: t.replace("seen_cap = 100", "seen_cap = 50"), "seen_cap/unseen_cap"),
+        (
+            lambda t: t.replace('success_rule = "destination"', 'success_rule = "arrival"'),
+            "protocol: success_rule 'arrival' makes Stop a no-op: stop_ends must be false",
+        ),
         (lambda t: t.replace("\nmargin = 3\n", "\nmargin = 5\n"), "protocol.margin = 5 must be 0..3 points"),
         (lambda t: t.replace("\nmargin = 3\n", "\nmargin = -1\n"), "protocol.margin = -1 must be 0..3"),
         (lambda t: t.replace("\nmargin = 3\n", "\n"), "protocol.margin is missing"),
