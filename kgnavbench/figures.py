@@ -423,8 +423,8 @@ def gcn_node_features(ck: dict, where="checkpoint") -> tuple[torch.Tensor, torch
     return h.float(), adjacency
 
 
-def tsne_figure(name: str, train_dir, out_dir, seed: int = 0) -> Path:
-    """tsne_gcn.png in out_dir: a t-SNE (seed) of the third GCN layer's node features of a run trained
+def tsne_figure(name: str, train_dir, out_dir, seed: int = 0, file_name: str = "tsne_gcn.png") -> Path:
+    """`file_name` in out_dir: a t-SNE (seed) of the third GCN layer's node features of a run trained
     with an accumulated knowledge graph (its best-validation checkpoint, else its last), the object
     types that have a co-visibility edge (every type where fewer than 3 have), each labelled. `name`:
     the row, for the title. (`figures` draws it for a table's last KG row; call it for any KG run.)"""
@@ -442,7 +442,7 @@ def tsne_figure(name: str, train_dir, out_dir, seed: int = 0) -> Path:
     return scatter_figure(
         tsne(h[keep], seed=seed),
         [types[i] for i in keep.tolist()],
-        Path(out_dir) / "tsne_gcn.png",
+        Path(out_dir) / file_name,
         f"t-SNE of the third GCN layer's node features: {name}, {len(keep)} object types "
         f"({int(ck['frames']):,} frames)",
         size=TSNE_SIZE,
