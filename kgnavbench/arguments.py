@@ -492,9 +492,9 @@ def table_arguments(sub) -> argparse.ArgumentParser:
     p.add_argument(
         "--workers",
         type=positive,
-        default=os.cpu_count() or 1,
         help="jobs (row x seed) run at once, each in its own process (default: one per core); the "
-        "table is the same for any number, only the wall time differs",
+        "table is the same for any number, only the wall time differs; not with --ray (the cluster's "
+        "CPUs decide)",
     )
     many = p.add_mutually_exclusive_group()
     many.add_argument(

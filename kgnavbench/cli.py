@@ -408,6 +408,11 @@ def cmd_table(args: argparse.Namespace) -> int:
         for path in reverdict_tables(spec, args.preset, args.out or spec.path.parent):
             print(f"wrote {path}")
         return 0
+    if args.ray and args.workers is not None:  # before connecting: the cluster's CPUs decide there
+        raise UsageError(
+            "--workers sets the jobs run at once on this machine; with --ray the cluster's CPUs do"
+        )
+    args.workers = args.workers or os.cpu_count() or 1
     device = arguments.device_name(args.device)
     assembles = not args.jobs and args.job is None and not args.train_only
     common: tuple[str, ...] = ()  # --against: the rows both presets run
@@ -546,6 +551,14 @@ def cmd_checkpoints(args: argparse.Namespace) -> int:
     device = arguments.device_name(args.device)
     csv_path = args.csv or spec.path.parent / f"checkpoints-{args.preset}.csv"
     arguments.writable_folder(csv_path.parent, "--csv")
+    if not args.runs.is_dir():  # (a typo would read as "no run trained yet")
+        raise UsageError(f"--runs {args.runs}: no such folder")
+    if args.figure is not None:  # refused before hours of evaluation, not after the CSV is written
+        import cv2
+
+        if not cv2.haveImageWriter(str(args.figure)):
+            raise UsageError(f"--figure {args.figure}: OpenCV writes no image of that extension (try .png)")
+        arguments.writable_folder(args.figure.parent, "--figure")
     rows = tuple(args.row or ())
     if args.matched and (args.seed or args.unfinished):
         raise UsageError(
@@ -555,6 +568,11 @@ def cmd_checkpoints(args: argparse.Namespace) -> int:
         spec, args.preset, args.runs, csv_path, args.episodes, rows, device,
         lambda line: print(line, flush=True), tuple(args.seed or ()), args.unfinished,
     )  # fmt: skip
+    if not csv_path.is_file():  # no finished run with snapshots: nothing was written, and none is claimed
+        raise UsageError(
+            f"no finished run of preset {args.preset!r} with snapshots in {args.runs}: "
+            f"nothing written to {csv_path}"
+        )
     print(f"wrote {csv_path}: {len(lines)} snapshots of {len({x['run'] for x in lines})} runs")
     if args.figure and lines:
         order, keep_every = [row.name for row in spec.rows], preset_keep_every(spec, args.preset)

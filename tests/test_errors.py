@@ -654,3 +654,22 @@ def test_watching_plugin_code_restores_the_callers_timer_and_handler():
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, before)
+
+
+def test_options_that_cannot_work_together_or_a_missing_folder_are_refused_before_any_work(capsys, tmp_path):
+    """--workers with --ray (refused before connecting: nothing listens at the address); checkpoints
+    with no runs folder, or a figure OpenCV cannot write (refused before evaluating anything, not
+    after the CSV is written); checkpoints that find no run writes nothing and says so, exit 2."""
+    code = main(
+        ["table", "--preset", "smoke", "--ray", "127.0.0.2:1", "--workers", "3", "--runs", str(tmp_path)]
+    )
+    assert_one_line_error(code, capsys.readouterr().err, "--workers", "--ray")
+    csv_path = tmp_path / "c.csv"
+    argv = ["checkpoints", "--preset", "smoke", "--csv", str(csv_path)]
+    code = main([*argv, "--runs", str(tmp_path / "nope")])
+    assert_one_line_error(code, capsys.readouterr().err, "--runs", "no such folder")
+    code = main([*argv, "--runs", str(tmp_path), "--figure", str(tmp_path / "f.xyz")])
+    assert_one_line_error(code, capsys.readouterr().err, "--figure", "f.xyz")
+    code = main([*argv, "--runs", str(tmp_path)])  # an empty runs folder: no run, no CSV, no "wrote"
+    err = assert_one_line_error(code, capsys.readouterr().err, "no finished run", "nothing written")
+    assert "wrote" not in err and not csv_path.exists()
