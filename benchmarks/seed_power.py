@@ -99,7 +99,8 @@ def main() -> None:
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         sources = Sources(ROOT / "zoo", False, ROOT / "tables" / "episodes" / "paper")
-        result = run_table(spec, args.preset, args.runs or Path(tmp), lambda line: None, 1, "cpu", sources)
+        quiet = {"progress": lambda line: None, "workers": 2, "sources": sources}
+        result = run_table(spec, args.preset, args.runs or Path(tmp), **quiet)
     print(
         f"preset {args.preset!r}: assembled in {time.perf_counter() - start:.0f} s; margin {margin:g} points"
     )

@@ -453,12 +453,13 @@ def cmd_table(args: argparse.Namespace) -> int:
         arguments.writable_folder(args.archive, "--archive")  # (it exists: checked above)
     if assembles:
         arguments.writable_folder(args.out or spec.path.parent, "--out")
+    # how every table of this command runs its jobs
+    on = {"progress": say, "workers": args.workers, "device": device, "sources": sources}
     if args.job is not None:
         run_job(spec, args.preset, args.job, args.runs, progress=say, device=device, sources=sources)
     if not assembles:
         if args.job is None:
-            ray = (args.ray, args.ray_node_ip)
-            run_table(spec, args.preset, args.runs, say, args.workers, device, sources, (), *ray)
+            run_table(spec, args.preset, args.runs, **on, ray_address=args.ray, ray_node_ip=args.ray_node_ip)
         trained = f" --trained {args.trained}" if args.trained is not None else ""
         trained += f" --archive {args.archive}" if args.archive is not None else ""
         print(
@@ -466,34 +467,13 @@ def cmd_table(args: argparse.Namespace) -> int:
             "what is left and assembles the table"
         )
         return 0
-    result = run_table(
-        spec,
-        args.preset,
-        args.runs,
-        say,
-        args.workers,
-        device,
-        sources,
-        tuple(args.row or ()),
-        args.ray,
-        args.ray_node_ip,
-    )
+    ray = {"ray_address": args.ray, "ray_node_ip": args.ray_node_ip}
+    result = run_table(spec, args.preset, args.runs, **on, rows_named=tuple(args.row or ()), **ray)
     paths = write_table(result, args.out or spec.path.parent)
     print()
     print(to_markdown(result).rstrip())
     if args.against is not None:
-        base = run_table(
-            spec,
-            args.against,
-            args.runs,
-            say,
-            args.workers,
-            device,
-            sources,
-            common,
-            args.ray,
-            args.ray_node_ip,
-        )
+        base = run_table(spec, args.against, args.runs, **on, rows_named=common, **ray)
         differences = paired_differences(result, base)
         paths += write_paired(result, base, differences, args.out or spec.path.parent)
         print()

@@ -563,11 +563,11 @@ def figures_of_table(
 
     spec = table_spec.load_spec(spec_path) if spec_path else table_spec.load_spec()
     if trained is None and device == "cpu" and not rows_named:
-        result = table.run_table(spec, preset, runs_dir, progress)
+        result = table.run_table(spec, preset, runs_dir, progress=progress)
     else:  # a run trained on CUDA is another run (its device is in its config): the table's, as asked
         sources = jobs.Sources(None if trained is None else Path(trained))
         result = table.run_table(
-            spec, preset, runs_dir, progress, device=device, sources=sources, rows_named=rows_named
+            spec, preset, runs_dir, progress=progress, device=device, sources=sources, rows_named=rows_named
         )
     rows = [(r.row.name, r.train_runs[0] or None, r.eval_runs[0]) for r in result.rows]
     return figures(rows, out_dir, progress=progress)

@@ -62,6 +62,7 @@ def run_table(
     spec: TableSpec,
     preset_name: str,
     runs_dir: Path | str = "runs",
+    *,
     progress=print,
     workers: int = 1,
     device: str = "cpu",
