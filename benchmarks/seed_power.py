@@ -14,7 +14,8 @@ look like the seeds at hand; with 3 seeds, that spread is itself uncertain, so t
 guide to where seeds decide, not a promise.
 
 It prints, per comparison and undecided cell, the probability of a decided verdict with 4, 6, 9 and
-12 seeds per row and the verdict most often reached; then, per row, the expected number of undecided
+12 seeds per row, the verdict most often reached, and the fewest of those seeds that decide it in 80%
+of the simulated tables; then, per row, the expected number of undecided
 cells a row's seeds 3..5 (6 in all, the other rows at their own) would decide, and per core-hour of
 its training (the `seconds` of its runs' finished.json in zoo/).
 
@@ -42,6 +43,7 @@ from kgnavbench.table_statistics import paper_difference
 
 ROOT = Path(__file__).resolve().parents[1]
 SEEDS = (4, 6, 9, 12)
+POWER = 0.8  # a cell is "decided from S seeds" when that share of the simulated tables decide it
 
 
 def resampled(episodes: list[tuple[str, float]], rng: np.random.Generator) -> list[tuple[str, float]]:
@@ -115,17 +117,20 @@ def main() -> None:
         per = [[[(e.stratum, e.success) for e in seed[s.cell]] for seed in r.episodes] for r in (base, other)]
         paper = paper_difference(base.row, other.row, s.cell, "SR")
         rng = np.random.default_rng(zlib.crc32(f"{s.comparison}{s.cell}".encode()))
-        line = []
+        line, enough = [], None
         for n in SEEDS:
             share, modal = decided(*per, n, n, paper, margin, args.sims, args.reps, rng)
             line.append(f"S={n}: {share:.0%} ({modal})")
+            enough = enough or (n if share >= POWER else None)
         # one row at 6 seeds, the other at its 3: what adding seeds to that row alone decides
         for who, (nb, no) in ((s.comparison.base, (6, 3)), (s.comparison.other, (3, 6))):
             share, _ = decided(*per, nb, no, paper, margin, args.sims, args.reps, rng)
             gained[who] += share
         print(
             f"  {s.comparison.other} − {s.comparison.base}, {CELL_TITLES[s.cell]}: now "
-            f"{s.ours.estimate:+.1f} [{s.ours.low:+.1f}, {s.ours.high:+.1f}]; " + "; ".join(line)
+            f"{s.ours.estimate:+.1f} [{s.ours.low:+.1f}, {s.ours.high:+.1f}]; "
+            + "; ".join(line)
+            + f"; decided in {POWER:.0%} of tables from {enough or f'more than {SEEDS[-1]}'} seeds"
         )
     print("expected undecided cells decided by one row at 6 seeds (the other row of each comparison at 3):")
     for name, cells in gained.most_common():
