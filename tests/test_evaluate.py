@@ -391,7 +391,7 @@ def test_a_packed_evaluation_rebuilds_its_results_byte_for_byte_and_resumes(tmp_
     """`pack_evaluation` keeps a finished evaluation in one file (the same bytes each time);
     `unpack_evaluation` rebuilds it in another runs folder, where the same config resumes from it
     without running an episode; damage, a foreign archive or another evaluation's folder is refused."""
-    from kgnavbench.evaluate import pack_evaluation, unpack_evaluation
+    from kgnavbench.archives import pack_evaluation, unpack_evaluation
 
     config = EvalConfig("random_walk", kitchens=("FloorPlan1",), episodes_per_target=2, seed=3)
     first = evaluate(config, tmp_path / "a", progress=lambda line: None)
