@@ -15,7 +15,24 @@ import json
 from pathlib import Path
 
 from .files import atomic_write, checksum_matches, first_line, write_with_checksum
+from .kitchens import KITCHEN_NAMES
+from .tasks import load_task_file
 from .weights import EvalError
+
+SPLITS = ("table", "train", "val", "test")
+
+
+def kitchens_of_split(split: str) -> list[str]:
+    """The kitchens an evaluation covers: 'table' = train + test (Table I), or one split."""
+    splits = load_task_file()["splits"]
+    if split == "table":
+        names = splits["train"] + splits["test"]
+    elif split in splits:
+        names = splits[split]
+    else:
+        raise EvalError(f"unknown split {split!r}; choose one of {SPLITS}")
+    return sorted(names, key=KITCHEN_NAMES.index)
+
 
 # Result rows as JSON lines: the types every field must have (a file that breaks them is not summed).
 RESULT_TYPES = {
@@ -62,7 +79,8 @@ def pack_evaluation(directory: Path, out_dir: Path) -> Path:
     config_bytes = (directory / "config.json").read_bytes() if (directory / "config.json").is_file() else None
     if config_bytes is None:
         raise EvalError(f"{directory} is not an evaluation (no config.json)")
-    kitchens = json.loads(config_bytes)["identity"]["config"]["kitchens"]
+    config = json.loads(config_bytes)["identity"]["config"]
+    kitchens = config["kitchens"] or kitchens_of_split(config["split"])  # none listed: all of its split
     table, checksums = io.StringIO(), {}
     writer = csv.writer(table, lineterminator="\n")
     writer.writerow(RESULT_TYPES)

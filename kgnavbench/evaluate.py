@@ -33,7 +33,15 @@ from pathlib import Path
 import numpy as np
 
 from . import store
-from .archives import PACKED_SUFFIX, RESULT_TYPES, pack_evaluation, unpack_evaluation, write_results_file
+from .archives import (
+    PACKED_SUFFIX,
+    RESULT_TYPES,
+    SPLITS,
+    kitchens_of_split,
+    pack_evaluation,
+    unpack_evaluation,
+    write_results_file,
+)
 from .env import SUCCESS_RULES, parallel_env
 from .files import (
     checksum_matches,
@@ -67,7 +75,6 @@ from .world import ACTIONS
 SEEN_CAP, UNSEEN_CAP = 100, 1000
 # 2: all episodes of a kitchen in one env reset (a policy's random stream differs from format 1's)
 EVALUATION_FORMAT = 2
-SPLITS = ("table", "train", "val", "test")
 # ------------------------------------------------------------------------------------------------
 # The protocol
 
@@ -85,18 +92,6 @@ def column_of(split: str, seen_target: bool) -> str:
 def episode_cap(column: str) -> int:
     """100 actions for seen kitchens and seen targets; 1000 where the target or kitchen is unseen."""
     return SEEN_CAP if column == "seen_seen" else UNSEEN_CAP
-
-
-def kitchens_of_split(split: str) -> list[str]:
-    """The kitchens an evaluation covers: 'table' = train + test (Table I), or one split."""
-    splits = load_task_file()["splits"]
-    if split == "table":
-        names = splits["train"] + splits["test"]
-    elif split in splits:
-        names = splits[split]
-    else:
-        raise EvalError(f"unknown split {split!r}; choose one of {SPLITS}")
-    return sorted(names, key=KITCHEN_NAMES.index)
 
 
 def _check_kitchen_names(names: tuple[str, ...]) -> None:
