@@ -15,7 +15,7 @@ def __getattr__(name: str):
 
         return evaluate_policy
     if name == "EvalError":
-        from .evaluate import EvalError
+        from .weights import EvalError
 
         return EvalError
     raise AttributeError(f"module 'kgnavbench' has no attribute {name!r}")

@@ -12,11 +12,12 @@ import os
 from pathlib import Path
 
 from .errors import KgnavbenchError
-from .evaluate import SPLITS, checkpoint_name
+from .evaluate import SPLITS
 from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import MAX_SEED
 from .tasks import EPISODES_PER_TARGET
 from .walk import MAX_SIZE, MIN_SIZE, view_size
+from .weights import checkpoint_name
 from .world import ACTIONS
 
 

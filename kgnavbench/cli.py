@@ -42,18 +42,13 @@ from pathlib import Path
 from . import arguments, plugins
 from .arguments import UsageError
 from .errors import KgnavbenchError
-from .evaluate import (
-    SEEN_CAP,
-    UNSEEN_CAP,
-    EvalConfig,
-    evaluate,
-    selected_checkpoint,
-)
+from .evaluate import SEEN_CAP, UNSEEN_CAP, EvalConfig, evaluate
 from .graph import build_all, cache_dir
 from .kitchens import KITCHEN_NAMES, check_name, kitchen_summary, load_kitchen
 from .plugins import PluginError, load_plugin, parse_options, plugin_sources
 from .tasks import load_tasks
 from .walk import walk
+from .weights import selected_checkpoint
 from .world import WorldError  # its bytes are the state graphs' fingerprint: no base class (errors.py)
 
 METHODS_IMPORT_TIMEOUT = 20.0  # seconds `methods` gives each plugin file to import
@@ -513,7 +508,7 @@ def cmd_ship(args: argparse.Namespace) -> int:
 
 
 def cmd_episodes(args: argparse.Namespace) -> int:
-    from .evaluate import pack_evaluation, unpack_evaluation
+    from .archives import pack_evaluation, unpack_evaluation
 
     for path in args.pack or ():
         print(f"packed {path} into {pack_evaluation(path, args.out)}")

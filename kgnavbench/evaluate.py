@@ -1,4 +1,4 @@
-"""Stage 18 — evaluate: the protocol. Fixed episodes through the environment, per-episode results,
+"""Stage 20 — evaluate: the protocol. Fixed episodes through the environment, per-episode results,
 and the metrics of Table I.
 
 Columns of Table I (DESIGN.md):
@@ -24,10 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import io
 import json
-import os
-import re
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -36,17 +33,21 @@ from pathlib import Path
 import numpy as np
 
 from . import store
+from .archives import (
+    PACKED_SUFFIX,
+    RESULT_TYPES,
+    SPLITS,
+    kitchens_of_split,
+    pack_evaluation,
+    unpack_evaluation,
+    write_results_file,
+)
 from .env import SUCCESS_RULES, parallel_env
-from .errors import KgnavbenchError
 from .files import (
-    atomic_write,
     checksum_matches,
     checksum_path,
     duration_text,
     first_line,
-    sha256_file,
-    symbolic_link,
-    write_with_checksum,
 )
 from .kitchens import KITCHEN_NAMES, check_name
 from .metrics import (
@@ -60,29 +61,20 @@ from .metrics import (
 )
 from .plugins import MAX_SEED, UNWEIGHTED_OPTIONS, Plugin, PluginError, PolicySpec, guarded, load_plugin
 from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks
+from .weights import (
+    CHECKPOINT_MEANING,
+    EvalError,
+    Weights,
+    checkpoint_name,
+    freeze_weights,
+    read_weights,
+    selected_checkpoint,
+)
 from .world import ACTIONS
 
 SEEN_CAP, UNSEEN_CAP = 100, 1000
 # 2: all episodes of a kitchen in one env reset (a policy's random stream differs from format 1's)
 EVALUATION_FORMAT = 2
-SPLITS = ("table", "train", "val", "test")
-# a training run's checkpoints that `eval --run` can test
-CHECKPOINT_MEANING = {"best": "best validation SR", "last": "the run's latest weights"}
-CHECKPOINTS = tuple(CHECKPOINT_MEANING)
-SNAPSHOT = re.compile(r"frames-[0-9]{1,15}")  # a kept snapshot (train's keep_every): snapshots/frames-N.pt
-
-
-def checkpoint_name(name: str) -> str:
-    """best, last or frames-N (a snapshot); anything else is an EvalError."""
-    if name in CHECKPOINTS or SNAPSHOT.fullmatch(name):
-        return name
-    raise EvalError(f"unknown checkpoint {name!r}; choose one of {CHECKPOINTS} or frames-N (a kept snapshot)")
-
-
-class EvalError(KgnavbenchError, ValueError):
-    """Bad evaluation input: unknown split or kitchen, a corrupt results file."""
-
-
 # ------------------------------------------------------------------------------------------------
 # The protocol
 
@@ -100,18 +92,6 @@ def column_of(split: str, seen_target: bool) -> str:
 def episode_cap(column: str) -> int:
     """100 actions for seen kitchens and seen targets; 1000 where the target or kitchen is unseen."""
     return SEEN_CAP if column == "seen_seen" else UNSEEN_CAP
-
-
-def kitchens_of_split(split: str) -> list[str]:
-    """The kitchens an evaluation covers: 'table' = train + test (Table I), or one split."""
-    splits = load_task_file()["splits"]
-    if split == "table":
-        names = splits["train"] + splits["test"]
-    elif split in splits:
-        names = splits[split]
-    else:
-        raise EvalError(f"unknown split {split!r}; choose one of {SPLITS}")
-    return sorted(names, key=KITCHEN_NAMES.index)
 
 
 def _check_kitchen_names(names: tuple[str, ...]) -> None:
@@ -347,114 +327,6 @@ def policy_spec(config: EvalConfig, seed: int, view_size: int, checkpoint: Path 
     return PolicySpec.default(seed, view_size, None if checkpoint is None else str(checkpoint), config.device)
 
 
-@dataclass
-class Weights:
-    """A run's selected checkpoint as one evaluation tests it: read once, its bytes and their sha256."""
-
-    source: Path
-    data: bytes
-    sha256: str
-
-
-def read_weights(config: EvalConfig) -> Weights:
-    """The selected checkpoint of `config.run`, read once: every kitchen of the evaluation gets these
-    bytes (a trainer that replaces best.pt meanwhile changes nothing), and its sha256 is the
-    evaluation's identity. The checkpoint's own record must name the method (config.json may be
-    relabelled; the weights are what they are)."""
-    trained_config = run_config(config.run)  # one read: the method's check and the identity's compare
-    source = selected_checkpoint(config.run, config.method, config.checkpoint, trained_config)
-    try:
-        data = source.read_bytes()
-    except OSError as e:
-        raise EvalError(f"cannot read {source}: {e.strerror or e}") from e
-    import torch  # only where a trained method is evaluated (the command line starts without it)
-
-    from .runs import checkpoint_differences
-
-    try:
-        record = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
-        trained = record.get("method")
-    except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, one line naming it
-        raise EvalError(f"checkpoint {source} is corrupt ({type(e).__name__}: {first_line(e)})") from e
-    if checksum_matches(source, data) is False:
-        raise EvalError(f"checkpoint {source} does not match its checksum: it changed after it was written")
-    if trained != config.method:
-        raise EvalError(
-            f"{source} holds weights trained by {trained!r} (its own record), not {config.method!r}"
-        )
-    # a checkpoint is what it says it is: its own record of options, kitchens, seed and frames must
-    # be the run's config.json's (+IL+TSE's weights in an LSTM A3C run share method and model)
-    differ = checkpoint_differences(record, trained_config)
-    if differ:
-        raise EvalError(
-            f"{source} is not the run its config.json describes: it differs in {'; '.join(differ[:4])}"
-        )
-    return Weights(source, data, hashlib.sha256(data).hexdigest())
-
-
-def freeze_weights(directory: Path, weights: Weights) -> Path:
-    """The evaluation's own copy of the weights it tests, `weights.pt` in its directory, with its
-    sha256 beside it: the record of which weights gave these results, and what every kitchen loads. A
-    hard link where the file system allows it and the source still holds those bytes (the trainer
-    replaces checkpoints by renaming, so the link keeps them), else a copy of the bytes read."""
-    path = directory / "weights.pt"
-    if path.exists() and sha256_file(path) == weights.sha256:
-        return path
-    link = path.with_name(".weights.pt.link")
-    try:
-        link.unlink(missing_ok=True)
-        os.link(weights.source, link)
-        if sha256_file(link) != weights.sha256:
-            raise OSError("the checkpoint changed since it was read")
-        os.replace(link, path)
-        atomic_write(checksum_path(path), f"{weights.sha256}  {path.name}\n")
-    except OSError:
-        link.unlink(missing_ok=True)
-        try:
-            write_with_checksum(path, weights.data)
-        except OSError as e:
-            raise EvalError(f"cannot write {path}: {e.strerror or e}; choose another --runs folder") from e
-    return path
-
-
-def run_config(run: str | Path) -> dict:
-    """A training run's config.json, read once (a symbolic link or an unreadable file: one line)."""
-    directory = Path(run)
-    if symbolic_link(directory / "config.json"):
-        raise EvalError(symbolic_link(directory / "config.json"))
-    try:
-        record = json.loads((directory / "config.json").read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise EvalError(f"--run {directory} is not a training run (no readable config.json)") from e
-    if not isinstance(record, dict):
-        raise EvalError(f"--run {directory} is not a training run (its config.json is not a table)")
-    return record
-
-
-def selected_checkpoint(
-    run: str | Path, method: str, which: str = "best", record: dict | None = None
-) -> Path:
-    """Table I's rule: the checkpoint with the best validation SR (`best.pt` of a training run); with
-    `which="last"`, the run's latest (`last.pt`, the final weights of a finished run). The run must be
-    one of `method` (its config.json, or `record` read from it, says which)."""
-    directory = Path(run)
-    trained = (record if record is not None else run_config(directory)).get("method")
-    if trained != method:
-        raise EvalError(f"--run {directory} trained {trained!r}, not {method!r}")
-    which = checkpoint_name(which)
-    path = directory / (f"snapshots/{which}.pt" if SNAPSHOT.fullmatch(which) else f"{which}.pt")
-    linked = symbolic_link(path) or symbolic_link(checksum_path(path))
-    if linked:
-        raise EvalError(linked)
-    if not path.exists():
-        if SNAPSHOT.fullmatch(which):
-            kept = sorted(p.stem for p in (directory / "snapshots").glob("frames-*.pt"))
-            raise EvalError(f"--run {directory} kept no snapshot {which} (kept: {', '.join(kept) or 'none'})")
-        when = "at the first validation" if which == "best" else "at the first checkpoint"
-        raise EvalError(f"--run {directory} has no {path.name} yet (it is saved {when})")
-    return path
-
-
 def check_actions(plugin: Plugin, actions, agents) -> None:
     """act() must return {agent: integer 0..9} for every live agent; anything else names the plugin."""
     if not isinstance(actions, dict):
@@ -479,24 +351,6 @@ def check_actions(plugin: Plugin, actions, agents) -> None:
 
 # ------------------------------------------------------------------------------------------------
 # Runs on disk: config with git revision, per-kitchen results (resumable), summary
-
-
-# Result rows as JSON lines: the types every field must have (a file that breaks them is not summed).
-RESULT_TYPES = {
-    "kitchen": str,
-    "target": str,
-    "kind": str,
-    "column": str,
-    "start": int,
-    "max_steps": int,
-    "success": bool,
-    "path_length": int,
-    "shortest_path": int,
-    "collisions": int,
-    "last_view_shows_target": bool,
-    "episode_length": int,
-    "stopped": bool,  # absent in results files written before it was recorded (read as None)
-}
 
 
 def parse_results(text: str, expected: list[tuple[str, int]], kitchen: str) -> list[EpisodeResult]:
@@ -563,7 +417,7 @@ def run_identity(config: EvalConfig, plugin: Plugin, plugin_config, weights: Wei
     """Everything that decides an evaluation's numbers; its hash names the run directory. `weights`:
     the tested checkpoint as read once (`read_weights`; read here when not given)."""
     if weights is None and config.run:
-        weights = read_weights(config)
+        weights = read_weights(config.run, config.method, config.checkpoint)
     return {
         # as it reads back (tuples are lists); where the run lies and which of its checkpoints is
         # tested are not part of it, the tested weights are
@@ -627,15 +481,6 @@ class EvalRun:
     resumed: list[str] = field(default_factory=list)
 
 
-def _write(path: Path, text: str | bytes, checksum: bool = False) -> None:
-    """Atomically; with `checksum`, its sha256 beside it (results files: an edit is refused, not summed)."""
-    try:
-        data = text.encode() if isinstance(text, str) else text
-        write_with_checksum(path, data) if checksum else atomic_write(path, data)
-    except OSError as e:
-        raise EvalError(f"cannot write {path}: {e.strerror or e}; choose another --runs folder") from e
-
-
 def open_run(directory: Path, identity: dict, plugin: Plugin) -> None:
     """Create the evaluation's directory with its config.json (the identity, the plugin's file, the git
     revision), or check that an existing one holds this evaluation (`store.open_directory`)."""
@@ -689,7 +534,7 @@ def evaluate(
     if config.run:
         check_fixed_options(config, plugin_config)
     kitchens = config.kitchen_list()
-    weights = read_weights(config) if config.run else None
+    weights = read_weights(config.run, config.method, config.checkpoint) if config.run else None
     identity = run_identity(config, plugin, plugin_config, weights)
     directory = Path(runs_dir) / "eval" / config.run_name(identity)
     packed = Path(archive) / f"{directory.name}{PACKED_SUFFIX}" if archive is not None else None
@@ -728,7 +573,7 @@ def evaluate(
         if results is None:
             t0 = time.perf_counter()
             results = evaluate_kitchen(plugin, plugin_config, config, kitchen, frozen)
-            _write(path, "".join(json.dumps(asdict(r)) + "\n" for r in results), checksum=True)
+            write_results_file(path, "".join(json.dumps(asdict(r)) + "\n" for r in results), checksum=True)
             steps = sum(r.episode_length for r in results)
             run.steps += steps
             dt = time.perf_counter() - t0
@@ -744,8 +589,8 @@ def evaluate(
     run.seconds = time.perf_counter() - start
     run.summary = summarize(run.results)
     summary_json = summary_as_json(run.summary)
-    _write(directory / "summary.json", json.dumps(summary_json, indent=2) + "\n")
-    _write(directory / "table.md", format_summary(run.summary, describe(config)) + "\n")
+    write_results_file(directory / "summary.json", json.dumps(summary_json, indent=2) + "\n")
+    write_results_file(directory / "table.md", format_summary(run.summary, describe(config)) + "\n")
     if packed is not None and not packed.is_file():
         progress(f"packed {directory.name} into {pack_evaluation(directory, packed.parent)}")
     return run
@@ -772,110 +617,3 @@ def describe(config: EvalConfig) -> str:
             else ""
         )
     )
-
-
-# A finished evaluation kept in git (tables/episodes/): its config.json and every episode as one CSV,
-# with each kitchen file's sha256, xz-compressed. About 0.5 MB for Table I's 77,100 episodes, a third
-# of the folder's own JSON lines compressed; the runs folder that holds the evaluations can be lost.
-PACKED_SUFFIX = ".tar.xz"
-PACKED_MEMBERS = ("config.json", "episodes.csv", "checksums.json")
-
-
-def pack_evaluation(directory: Path, out_dir: Path) -> Path:
-    """`directory` (a finished evaluation: every kitchen's results present and matching its checksum)
-    as OUT_DIR/<its name>.tar.xz, the same bytes every time; `unpack_evaluation` rebuilds its results
-    files byte for byte."""
-    import csv
-    import tarfile
-
-    directory = Path(directory)
-    config_bytes = (directory / "config.json").read_bytes() if (directory / "config.json").is_file() else None
-    if config_bytes is None:
-        raise EvalError(f"{directory} is not an evaluation (no config.json)")
-    kitchens = json.loads(config_bytes)["identity"]["config"]["kitchens"]
-    table, checksums = io.StringIO(), {}
-    writer = csv.writer(table, lineterminator="\n")
-    writer.writerow(RESULT_TYPES)
-    for kitchen in kitchens:
-        path = directory / "episodes" / f"{kitchen}.jsonl"
-        data = path.read_bytes() if path.is_file() else b""
-        if not data or checksum_matches(path, data) is not True:
-            raise EvalError(f"{path} is missing or does not match its checksum: evaluate it first")
-        for line in data.decode().splitlines():
-            row = json.loads(line)
-            writer.writerow(
-                "" if row.get(k) is None else int(row[k]) if kind is bool else row[k]
-                for k, kind in RESULT_TYPES.items()
-            )
-        checksums[kitchen] = hashlib.sha256(data).hexdigest()
-    members = (config_bytes, table.getvalue().encode(), (json.dumps(checksums, indent=1) + "\n").encode())
-    out = Path(out_dir) / f"{directory.name}{PACKED_SUFFIX}"
-    buffer = io.BytesIO()
-    with tarfile.open(fileobj=buffer, mode="w:xz", preset=9) as tar:
-        for name, content in zip(PACKED_MEMBERS, members):
-            info = tarfile.TarInfo(f"{directory.name}/{name}")  # mtime, owner: 0, so the same bytes
-            info.size, info.mode = len(content), 0o644
-            tar.addfile(info, io.BytesIO(content))
-    _write(out, buffer.getvalue())
-    return out
-
-
-def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
-    """Rebuild a packed evaluation in EVAL_ROOT/<its name> (RUNS/eval): its config.json and each
-    kitchen's results with their checksums, each checked against the sha256 it was packed with. Files
-    already there are kept, never overwritten: a config.json of the same evaluation (its identity; the
-    git revision, machine and plugin path it records may differ) stays, another one is refused; a
-    later evaluation of that config then resumes from them."""
-    import csv
-    import lzma
-    import tarfile
-
-    archive = Path(archive)
-    name = archive.name.removesuffix(PACKED_SUFFIX)
-    try:
-        with tarfile.open(archive, mode="r:xz") as tar:
-            members = {m.name: m for m in tar.getmembers()}
-            if set(members) != {f"{name}/{m}" for m in PACKED_MEMBERS}:
-                raise EvalError(f"{archive} is not a packed evaluation named {name}: holds {sorted(members)}")
-            config_bytes, table, checksums = (
-                tar.extractfile(members[f"{name}/{m}"]).read() for m in PACKED_MEMBERS
-            )
-    except (OSError, EOFError, lzma.LZMAError, tarfile.TarError) as e:
-        raise EvalError(f"{archive} cannot be read as a packed evaluation: {e}") from e
-    checksums = json.loads(checksums)
-    directory = Path(eval_root) / name
-    config_path = directory / "config.json"
-    try:
-        packed_identity = json.loads(config_bytes)["identity"]
-    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as e:
-        raise EvalError(f"{archive}: its config.json holds no evaluation's identity ({first_line(e)})") from e
-    if config_path.exists():
-        try:
-            identity = json.loads(config_path.read_bytes())["identity"]
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
-            identity = None
-        if identity != packed_identity:
-            raise EvalError(f"{config_path} holds another evaluation than {archive}: nothing unpacked")
-    by_kitchen: dict[str, list[str]] = {}
-    reader = csv.reader(io.StringIO(table.decode()))
-    if tuple(next(reader, ())) != tuple(RESULT_TYPES):
-        raise EvalError(f"{archive}: its episodes.csv does not have the fields {', '.join(RESULT_TYPES)}")
-    for values in reader:
-        row = {
-            k: (bool(int(v)) if kind is bool else kind(v))
-            for (k, kind), v in zip(RESULT_TYPES.items(), values)
-            if v != ""
-        }
-        by_kitchen.setdefault(row["kitchen"], []).append(json.dumps(row) + "\n")
-    if set(by_kitchen) != set(checksums):
-        raise EvalError(f"{archive}: its episodes and its checksums name other kitchens")
-    if not config_path.exists():
-        _write(config_path, config_bytes)
-    for kitchen, lines in by_kitchen.items():
-        data = "".join(lines).encode()
-        if hashlib.sha256(data).hexdigest() != checksums[kitchen]:
-            raise EvalError(f"{archive}: {kitchen}'s episodes do not rebuild the file that was packed")
-        path = directory / "episodes" / f"{kitchen}.jsonl"
-        if not path.exists():
-            _write(path, data.decode(), checksum=True)
-    return directory

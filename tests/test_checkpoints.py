@@ -250,7 +250,9 @@ def test_matched_pairs_the_seeds_snapshots_of_one_schedule_not_their_exact_frame
     monkeypatch.setattr(checkpoints, "_snapshot_episodes", snapshots)
     monkeypatch.setattr(checkpoints, "run_keep_every", lambda run_dir: 2_500_000)
     monkeypatch.setattr(
-        checkpoints, "compared_at", lambda b, be, o, oe, frames: calls.append((b.name, be, oe, frames)) or []
+        checkpoints,
+        "compared_at",
+        lambda b, be, o, oe, frames, margin: calls.append((b.name, be, oe, frames)) or [],
     )
     said = []
     checkpoints.matched(load_spec(SPEC_FILE), "paper", tmp_path, rows=("LSTM A3C",), progress=said.append)

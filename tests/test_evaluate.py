@@ -391,7 +391,7 @@ def test_a_packed_evaluation_rebuilds_its_results_byte_for_byte_and_resumes(tmp_
     """`pack_evaluation` keeps a finished evaluation in one file (the same bytes each time);
     `unpack_evaluation` rebuilds it in another runs folder, where the same config resumes from it
     without running an episode; damage, a foreign archive or another evaluation's folder is refused."""
-    from kgnavbench.evaluate import pack_evaluation, unpack_evaluation
+    from kgnavbench.archives import pack_evaluation, unpack_evaluation
 
     config = EvalConfig("random_walk", kitchens=("FloorPlan1",), episodes_per_target=2, seed=3)
     first = evaluate(config, tmp_path / "a", progress=lambda line: None)
@@ -434,3 +434,19 @@ def test_a_packed_evaluation_rebuilds_its_results_byte_for_byte_and_resumes(tmp_
     (first.directory / "episodes" / "FloorPlan1.jsonl").write_text("edited\n")
     with pytest.raises(EvalError, match="does not match its checksum"):
         pack_evaluation(first.directory, tmp_path / "edited")
+
+
+def test_an_evaluation_of_a_whole_split_packs_every_kitchen_of_it(tmp_path):
+    """An evaluation that lists no kitchens covers its split's: packing it keeps every one of them
+    (it once packed none, silently), and unpacking rebuilds them all."""
+    from kgnavbench.archives import pack_evaluation, unpack_evaluation
+
+    config = EvalConfig(method="random_walk", split="val", episodes_per_target=1)
+    assert config.kitchens == ()
+    run = evaluate(config, runs_dir=tmp_path / "a", progress=lambda line: None)
+    packed = pack_evaluation(run.directory, tmp_path / "packed")
+    rebuilt = unpack_evaluation(packed, tmp_path / "b" / "eval")
+    kept = sorted(p.stem for p in (rebuilt / "episodes").glob("*.jsonl"))
+    assert kept == sorted(kitchens_of_split("val")) and len(kept) == 5
+    again = evaluate(config, runs_dir=tmp_path / "b", progress=lambda line: None)  # resumes every kitchen
+    assert len(again.resumed) == 5 and again.summary == run.summary
