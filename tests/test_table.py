@@ -104,6 +104,9 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
 
 
 GOOD = SPEC_FILE.read_text()
+# the paper presets' own seeds per row (the first: the paper preset's)
+ROW_SEEDS = 'row_seeds = { "+IL+TSE" = 4, "+IL+TSE, object detections, no graph" = 4 }\n'
+assert GOOD.count(ROW_SEEDS) == 3
 A_COMPARISON = '[[comparisons]]\nbase = "+KG"\nother = "+KG+Attention"\n'
 assert A_COMPARISON in GOOD
 
@@ -219,22 +222,20 @@ UNSEEN_TARGETS = '[presets.{0}]\nunseen_target_kitchens = ["{1}"]\n'
             "presets.smoke.unseen_target_kitchens: FloorPlan2 is not a training kitchen that the preset",
         ),
         (
-            lambda t: t.replace("[presets.paper]\n", '[presets.paper]\nrow_seeds = { "+KG" = 0 }\n'),
+            lambda t: t.replace(ROW_SEEDS, 'row_seeds = { "+KG" = 0 }\n', 1),
             "presets.paper.row_seeds.'+KG' = 0 must be a number of seeds, 1..100",
         ),
         (
-            lambda t: t.replace("[presets.paper]\n", '[presets.paper]\nrow_seeds = { "+KG" = true }\n'),
+            lambda t: t.replace(ROW_SEEDS, 'row_seeds = { "+KG" = true }\n', 1),
             "presets.paper.row_seeds.'+KG' = True must be a number of seeds",
         ),
         (
-            lambda t: t.replace("[presets.paper]\n", '[presets.paper]\nrow_seeds = { "+GK" = 6 }\n'),
+            lambda t: t.replace(ROW_SEEDS, 'row_seeds = { "+GK" = 6 }\n', 1),
             "presets.paper.row_seeds: '+GK' is not a row of the preset",
         ),
         # a row of the spec that the preset does not run
         (
-            lambda t: t.replace(
-                "[presets.paper]\n", '[presets.paper]\nrow_seeds = { "+KG, first reading" = 6 }\n'
-            ),
+            lambda t: t.replace(ROW_SEEDS, 'row_seeds = { "+KG, first reading" = 6 }\n', 1),
             "presets.paper.row_seeds: '+KG, first reading' is not a row of the preset",
         ),
     ],
@@ -262,14 +263,15 @@ def test_a_preset_can_evaluate_unseen_targets_in_some_kitchens_and_its_caption_s
 
 
 def test_a_row_can_have_its_own_seeds_which_follow_every_other_job_and_the_caption_says_so():
-    more = '[presets.paper]\nrow_seeds = { "+KG" = 5, "IL" = 4, "LSTM A3C" = 2 }\n'
-    spec = parse_spec(GOOD.replace("[presets.paper]\n", more))
-    preset, before = spec.presets["paper"], parse_spec(GOOD).presets["paper"]
+    more = 'row_seeds = { "+KG" = 5, "IL" = 4, "LSTM A3C" = 2 }\n'
+    spec = parse_spec(GOOD.replace(ROW_SEEDS, more, 1))
+    preset, before = spec.presets["paper"], parse_spec(GOOD.replace(ROW_SEEDS, "", 1)).presets["paper"]
     assert (preset.seeds_of("+KG"), preset.seeds_of("IL"), preset.seeds_of("FF A3C")) == (5, 4, 3)
     jobs = [(row.name, seed) for row, seed in table_jobs(spec, preset)]
     # the preset's seeds of every row first, in the old order but for LSTM A3C's third seed; then the
     # extra seeds, row by row in the spec's order, so that adding seeds renumbers no other job
     old = [(row.name, seed) for row, seed in table_jobs(spec, before)]
+    assert len(old) == 30  # the paper preset's ten rows, 3 seeds each
     assert jobs[: len(old) - 1] == [job for job in old if job != ("LSTM A3C", 2)]
     assert jobs[len(old) - 1 :] == [("IL", 3), ("+KG", 3), ("+KG", 4)]
     assert "3 seeds (+KG: 5; IL: 4; LSTM A3C: 2);" in caption(TableResult(spec, preset, [], 60.0, "abc"))
