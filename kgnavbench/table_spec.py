@@ -204,7 +204,8 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
         seen_cap=_field(where, p, "seen_cap", int),
         unseen_cap=_field(where, p, "unseen_cap", int),
         checkpoint=_field(where, p, "checkpoint", str),
-        margin=float(_field(where, p, "margin", (int, float))),
+        # optional: a spec that states none reads "no difference" only where the interval is exactly 0
+        margin=float(_field(where, p, "margin", (int, float), 0, required=False)),
     )
     if not 0 <= protocol.margin <= MAX_MARGIN:
         raise TableError(f"{where}.margin = {protocol.margin:g} must be 0..{MAX_MARGIN:g} points")

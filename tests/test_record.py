@@ -412,7 +412,7 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
         ]
     )
     calls = []
-    monkeypatch.setattr(table, "run_table", lambda *args: calls.append(args) or result)
+    monkeypatch.setattr(table, "run_table", lambda *args, progress: calls.append((*args, progress)) or result)
     notes = []
     paths = figures.figures_of_table("smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append)
     assert [p.name for p in paths] == ["collisions_unseen.png"]
@@ -422,7 +422,9 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     # --trained: the runs come from that folder (table.Sources), never trained
     taken = []
     monkeypatch.setattr(
-        table, "run_table", lambda *args, device, sources, rows_named: taken.append(sources) or result
+        table,
+        "run_table",
+        lambda *args, progress, device, sources, rows_named: taken.append(sources) or result,
     )
     figures.figures_of_table(
         "smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append, trained=tmp_path
@@ -434,7 +436,9 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     monkeypatch.setattr(
         table,
         "run_table",
-        lambda *args, device, sources, rows_named: named.append((device, sources, rows_named)) or result,
+        lambda *args, progress, device, sources, rows_named: (
+            named.append((device, sources, rows_named)) or result
+        ),
     )
     figures.figures_of_table(
         "smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append, rows_named=("LSTM A3C",)

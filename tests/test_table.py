@@ -128,7 +128,6 @@ UNSEEN_TARGETS = '[presets.{0}]\nunseen_target_kitchens = ["{1}"]\n'
         ),
         (lambda t: t.replace("\nmargin = 3\n", "\nmargin = 5\n"), "protocol.margin = 5 must be 0..3 points"),
         (lambda t: t.replace("\nmargin = 3\n", "\nmargin = -1\n"), "protocol.margin = -1 must be 0..3"),
-        (lambda t: t.replace("\nmargin = 3\n", "\n"), "protocol.margin is missing"),
         (
             lambda t: t.replace("\nmargin = 3\n", '\nmargin = "3"\n'),
             "protocol.margin = '3' must be int or float",
@@ -280,6 +279,11 @@ def test_a_row_can_have_its_own_seeds_which_follow_every_other_job_and_the_capti
 
     with pytest.raises(TableError, match="differ in row_seeds"):
         check_same_runs(preset, spec.presets["paper-last"])
+
+
+def test_a_spec_without_a_margin_has_none():
+    assert parse_spec(GOOD.replace("\nmargin = 3\n", "\n")).protocol.margin == 0.0
+    assert parse_spec(GOOD).protocol.margin == 3.0
 
 
 def test_a_spec_without_comparisons_is_fine():
