@@ -213,11 +213,6 @@ def _ablation_header() -> list[str]:
     return head
 
 
-def ablation_rows(result: TableResult) -> list[list[str]]:
-    """One line per comparison and cell: per metric the paper's difference, ours and the verdict."""
-    return _ablation_lines(result.spec.comparisons, result.statistics().comparisons)
-
-
 def _ablation_lines(comparisons, statistics: list[ComparisonStatistics]) -> list[list[str]]:
     by_key = {(s.comparison, s.cell, s.metric): s for s in statistics}
     lines = []
@@ -235,11 +230,6 @@ def _ablation_lines(comparisons, statistics: list[ComparisonStatistics]) -> list
                 ]
             lines.append(line)
     return lines
-
-
-def verdict_counts(result: TableResult) -> str:
-    """'SPL: holds 3, ..., cannot tell 6; SR: ...' over every comparison and cell."""
-    return _counts(result.statistics().comparisons, verdicts(result.spec.protocol.margin))
 
 
 def _counts(items, verdicts: tuple[str, ...]) -> str:
@@ -355,7 +345,7 @@ def reverdict_tables(spec: TableSpec, preset_name: str, out_dir: Path | str) -> 
     is kept as written). For tables whose runs or evaluations are not at hand (the quick tables, whose
     evaluations are not kept), after a change of the verdict rules."""
     preset = spec.preset(preset_name)
-    stem = Path(out_dir) / ("table1" if preset.name == "quick" else f"table1-{preset.name}")
+    stem = Path(out_dir) / table_stem(preset.name)
     path = stem.parent / f"{stem.name}-ablation.csv"
     try:
         lines = path.read_text(encoding="utf-8").splitlines()
@@ -399,16 +389,16 @@ def reverdict_tables(spec: TableSpec, preset_name: str, out_dir: Path | str) -> 
     md, tex = stem.parent / f"{stem.name}.md", stem.parent / f"{stem.name}.tex"
     if none:  # no comparison in the table: its .md and .tex say so, with nothing to recompute
         return _write_files(stem.parent, tuple(files))
-    if md.exists() and "\n\n**Ablation check.** " in md.read_text(encoding="utf-8"):
-        text = md.read_text(encoding="utf-8")
-        text = text[: text.index("\n\n**Ablation check.** ")]
+    md_text = md.read_text(encoding="utf-8") if md.exists() else ""
+    if "\n\n**Ablation check.** " in md_text:
+        kept = md_text[: md_text.index("\n\n**Ablation check.** ")]
         files.append(
-            (md.name, "\n".join([text, *_ablation_markdown(comparisons, statistics, margin)]) + "\n")
+            (md.name, "\n".join([kept, *_ablation_markdown(comparisons, statistics, margin)]) + "\n")
         )
-    if tex.exists() and TEX_ABLATION in tex.read_text(encoding="utf-8"):
-        text = tex.read_text(encoding="utf-8")
-        text = text[: text.index(TEX_ABLATION)]
-        files.append((tex.name, text + "\n".join(_ablation_latex(comparisons, statistics, margin)) + "\n"))
+    tex_text = tex.read_text(encoding="utf-8") if tex.exists() else ""
+    if TEX_ABLATION in tex_text:
+        kept = tex_text[: tex_text.index(TEX_ABLATION)]
+        files.append((tex.name, kept + "\n".join(_ablation_latex(comparisons, statistics, margin)) + "\n"))
     return _write_files(stem.parent, tuple(files))
 
 
@@ -478,13 +468,17 @@ def _ablation_latex(comparisons, statistics: list[ComparisonStatistics], margin:
     return lines + [r"\end{table*}"]
 
 
+def table_stem(preset_name: str) -> str:
+    """The files' stem of a preset's table: table1 for the quick preset (`make table`), table1-<preset>."""
+    return "table1" if preset_name == "quick" else f"table1-{preset_name}"
+
+
 def write_table(result: TableResult, out_dir: Path | str) -> list[Path]:
     """tables/table1.{md,csv,tex} and table1-ablation.csv for the quick preset, table1-<preset>.* and
     table1-<preset>-ablation.csv for the others; `-partial` after the preset's name for a table without
     some of its rows (`--row`), so that it never overwrites the whole one (a later partial table of the
     same preset replaces an earlier one)."""
-    stem = "table1" if result.preset.name == "quick" else f"table1-{result.preset.name}"
-    stem += "-partial" if result.left_out else ""
+    stem = table_stem(result.preset.name) + ("-partial" if result.left_out else "")
     return _write_files(
         out_dir,
         (
