@@ -1004,3 +1004,86 @@ def test_eval_refuses_weights_that_are_not_the_run_config_json_describes(capsys,
     err = capsys.readouterr().err
     assert "is not the run its config.json describes" in err and "option il False (config.json: True)" in err
     assert err.count("\n") == 1
+
+
+# ----------------------------------------------------------------------------------------------------
+# the trainer's arithmetic, pinned: a refactoring of train.py must leave every weight's bytes alone
+
+# (method, options) -> sha256 of the final weights (last.pt's model state, keys sorted, raw bytes) of a
+# 400-frame tiny run, seed 0, one thread under MKL_CBWR=AVX2 and ATEN_CPU_CAPABILITY=avx2 with torch
+# 2.13.0. Recorded before the Trainer was split into its collection and its update; a change of the
+# training algorithm changes them on purpose (record the new values and say why in the commit).
+GOLDEN_WEIGHTS = {
+    ("imitation", ()): "c22923e379b41691d609767a862aa0489078dec794e9bc9fef7dd648ee5b51bb",
+    (
+        "ff_a3c",
+        ("start_curriculum=1.0", "stop_ends_from=0", "episode_cap=50"),
+    ): "ed79876f7427bcaccb60cccf44ab752c579c6a02ec0566cbf5b03802ec3225b7",
+    (
+        "lstm_a3c",
+        ("il=true", "tse=true", "episode_cap=30", "wrong_stop_penalty=0.05"),
+    ): "c5abfcb68ab8acae355b0ad43ae361a296b5f70287d6a09847dfcbe82d3f52d1",
+    (
+        "lstm_a3c",
+        ("il=true", "il_expert=dagger"),
+    ): "eb1e668858b080085683116ff8d4afba83b69c96611022a04b7d7f706975df53",
+    ("kg_attention", ()): "a00d2db0454009a2e57214d8318c8ba19068af121268dfdf4922bb3dc2f5d1f2",
+    (
+        "kg_attention",
+        ("attention=false", "kg_edges=ppmi_top5", "gcn_norm=pair", "kg_readout=nodes"),
+    ): "ab73169c66c2e14df64463188ebbf3b4c9faa2e70e17fefa1f96ff024b8499e6",
+}
+PINNED_NUMERICS = {"MKL_CBWR": "AVX2", "ATEN_CPU_CAPABILITY": "avx2", "OMP_NUM_THREADS": "1"}
+
+WEIGHTS_SCRIPT = """
+import hashlib, json, sys
+from pathlib import Path
+import torch
+from kgnavbench.cli import main
+from kgnavbench.runs import load_checkpoint
+
+out = {}
+for i, (method, argv) in enumerate(json.loads(sys.argv[1])):
+    runs = Path(sys.argv[2]) / str(i)
+    assert main(["train", "--method", method, "--runs", str(runs), *argv]) == 0
+    (run,) = (runs / "train").iterdir()
+    model = load_checkpoint(run / "last.pt")["model"]
+    digest = hashlib.sha256()
+    for key in sorted(model):
+        digest.update(key.encode() + model[key].contiguous().view(torch.uint8).numpy().tobytes())
+    out[i] = digest.hexdigest()
+print(json.dumps(out))
+"""
+
+
+def test_a_short_training_writes_the_recorded_weights(tmp_path, hermetic_cache):
+    """Byte for byte the weights recorded before the trainer's last refactoring, for every learned
+    method and each of IL, DAgger, TSE, a wrong Stop's penalty, truncation, the graph readouts. Weights
+    depend on the CPU's vector paths (docs/reproducibility.md): the run pins them, and elsewhere than
+    torch 2.13.0 on an AVX2 CPU the test is skipped."""
+    if torch.__version__.split("+")[0] != "2.13.0" or torch.backends.cpu.get_cpu_capability() not in (
+        "AVX2",
+        "AVX512",
+    ):
+        pytest.skip("the recorded weights are torch 2.13.0's on an AVX2 CPU")
+    jobs = [
+        (
+            method,
+            ["--frames", "400", "--kitchens", "FloorPlan1"]
+            + [f"--set={k}={v}" for k, v in TINY.items()]
+            + [f"--set={s}" for s in extra],
+        )
+        for method, extra in GOLDEN_WEIGHTS
+    ]
+    env = {**os.environ, **PINNED_NUMERICS, "KGNAVBENCH_CACHE": str(hermetic_cache)}
+    done = subprocess.run(
+        [sys.executable, "-c", WEIGHTS_SCRIPT, json.dumps(jobs), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    print(json.dumps({repr(k): got[str(i)] for i, k in enumerate(GOLDEN_WEIGHTS)}, indent=1))
+    assert [got[str(i)] for i in range(len(jobs))] == list(GOLDEN_WEIGHTS.values())
