@@ -63,7 +63,7 @@ def main() -> None:
                 trainer.load_state_dict(runs.load_checkpoint(Path(tmp) / "last.pt"))
             space = trainer.space
             cells = []
-            for r in np.unique(trainer.nav.assigned):
+            for r in np.unique(trainer.actors.nav.assigned):
                 starts = np.array(space.fixed_starts[r][:20])
                 sr, _, _ = agent.run_episodes(trainer.model, space, np.repeat(r, len(starts)), starts, 100, 1)
                 cells.append((space.target_ids[r].split("|")[0], sr))

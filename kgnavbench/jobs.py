@@ -1,4 +1,4 @@
-"""Stage 25 — jobs: a table's jobs (one row for one seed each) and the engines that run them.
+"""Stage 26 — jobs: a table's jobs (one row for one seed each) and the engines that run them.
 
 A `Job` trains (or finds, or resumes) one row's run for one seed and evaluates its checkpoint under the
 preset's rule (`run_row`); `execute` runs it in this process and keeps what the table needs

@@ -208,7 +208,7 @@ def training_kitchens(kitchens=()) -> tuple[str, ...]:
 # run through the state-graph cache, which is keyed by their own fingerprint)
 TRAINING_CODE = (
     "graph.py", "tasks.py", "encoder.py", "env.py", "vecenv.py", "runs.py", "losses.py", "models.py",
-    "agent.py", "train.py",
+    "agent.py", "rollout.py", "train.py",
 )  # fmt: skip
 
 

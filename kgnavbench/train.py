@@ -1,18 +1,19 @@
-"""Stage 15 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
+"""Stage 16 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
 imitation learning (IL), target skill extension (TSE), checkpoints, logs and resumption.
 
 It stands on the stages before it: the run directory, options and checkpoints (kgnavbench/runs.py),
-the batched navigators over all training kitchens' state graphs as one (kgnavbench/vecenv.py: a step
-is a handful of NumPy gathers through the env's own `transition`), the losses and the IL and TSE data
-(kgnavbench/losses.py), and the network with its inputs around it (kgnavbench/agent.py). Read it
-top to bottom:
+the losses and the IL and TSE data (kgnavbench/losses.py), the network with its inputs around it
+(kgnavbench/agent.py), and the acting half of the algorithm (kgnavbench/rollout.py: the agents in the
+batched navigators of kgnavbench/vecenv.py, stepped n times per update). Read it top to bottom:
 
-1. `Trainer`: the rollout (20 steps of all agents, then one learning pass over them), the IL and TSE
-   passes, validation on fixed episodes, and the checkpoint (model, optimiser, every RNG, every agent's
-   episode and LSTM state, the co-visibility counts): a run killed at any moment resumes from
-   `last.pt` exactly as if it had never stopped. Under torchrun each rank holds its share of the
-   agents (kgnavbench/distributed.py).
-2. `learn`: the loop, `metrics.csv`, progress lines, `last.pt`, `best.pt` (Table I's checkpoint rule,
+1. `Trainer`: `update` is the algorithm, one rollout (`collect`: 20 steps of all agents) and one
+   gradient step on its losses; validation on fixed episodes; and the checkpoint (model, optimiser,
+   every RNG, every agent's episode and LSTM state, the co-visibility counts): a run killed at any
+   moment resumes from `last.pt` exactly as if it had never stopped. Under torchrun each rank holds
+   its share of the agents (kgnavbench/distributed.py).
+2. The learning half, as plain functions of the model and the data: the rollout's A2C loss (and
+   DAgger's), IL's expert batches, TSE's relabelled windows and their loss.
+3. `learn`: the loop, `metrics.csv`, progress lines, `last.pt`, `best.pt` (Table I's checkpoint rule,
    the paper's words: the checkpoint with the highest validation SR, ties to the later one) and, with
    keep_every, weight snapshots.
 A trained checkpoint becomes a plugin policy in the next stage, kgnavbench/policy.py.
@@ -27,7 +28,7 @@ import json
 import math
 import random
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from . import distributed, encoder, models
-from .agent import Model, detached, keep_rows, rows_of, run_episodes
+from .agent import Model, run_episodes
 from .env import reward
 from .files import atomic_write, duration_text
 from .graph import STOP
@@ -43,7 +44,6 @@ from .intervals import standard_error
 from .kitchens import KITCHEN_NAMES
 from .losses import (
     Sequences,
-    SubtargetSampler,
     actor_critic_loss,
     assign_targets,
     expert_sequences,
@@ -53,9 +53,8 @@ from .losses import (
     optimal_actions,
     pad,
     relabel,
-    subtarget_types,
 )
-from .models import N_ACTIONS
+from .rollout import Actors, Rollout
 from .runs import (
     CHECKPOINT_FORMAT,
     POLICY_KEYS,
@@ -69,7 +68,7 @@ from .runs import (
     seconds_at,
 )
 from .tasks import load_task_file
-from .vecenv import NavigationVectorEnv, StateSpace, build_space, curriculum_reach
+from .vecenv import StateSpace, build_space, curriculum_reach
 
 VALIDATION_CAP = 1000  # validation kitchens are unseen kitchens: evaluate's cap of 1000 actions
 # FF A3C is validated where its scene-specific heads exist: its own training kitchens' seen targets,
@@ -104,32 +103,16 @@ METRICS = (
 
 
 # ------------------------------------------------------------------------------------------------
-# 1. The trainer
-
-
-@dataclass
-class Rollout:
-    """n steps of B agents as acting saw them (`Trainer.collect`); the learning pass replays them."""
-
-    states: np.ndarray  # (n, B) the state each step acted in
-    targets: np.ndarray  # (n, B) its target row
-    actions: np.ndarray  # (n, B)
-    # (n, B) the env's rewards (less a wrong Stop's penalty); a step that reached the cap also gains
-    # gamma V(the state it reached)
-    rewards: np.ndarray
-    dones: np.ndarray  # (n, B) 1.0 where the episode ended at that step, by the task or by the cap
-    truncated: np.ndarray  # (n, B) True where it ended by the cap only
-    histories: np.ndarray | None  # (n, B, history) FF's frames
-    scene: np.ndarray | None  # (B,) FF's training-kitchen index
-    start_hidden: tuple | None  # the LSTM state before the first step
-    bootstrap: torch.Tensor  # (B,) V of the state after the last step
-    logits: torch.Tensor  # (n, B, 10) the acting pass's
-    values: torch.Tensor  # (n, B)
-    windows: list  # TSE: the sub-target windows (losses.Window) of the episodes that ended
+# 1. The trainer: the agents act (kgnavbench/rollout.py), then one gradient step on what they did
 
 
 class Trainer:
-    """A2C over all training kitchens at once, with optional IL and TSE; its whole state checkpoints."""
+    """A2C over all training kitchens at once, with optional IL and TSE; its whole state checkpoints.
+
+    `update` is the algorithm, in its two halves: `collect` (the agents act n steps under the current
+    weights, without autograd) and one gradient step on the sum of the rollout's A2C loss
+    (`rollout_losses`), IL's (`expert_batch_loss`, or DAgger's labels on the rollout's own states) and
+    TSE's (`relabelled_windows`, `skill_extension_loss`): the functions after the class."""
 
     def __init__(
         self,
@@ -161,6 +144,7 @@ class Trainer:
         # every rank starts from the same weights (above); its agents draw from generators of their own
         # (rank 0's are a single process's)
         seed = run.seed if ranks.rank == 0 else run.seed + 1_000_003 * ranks.rank
+        # the actions' sampler; IL's expert batches draw from it too
         self.generator = torch.Generator(self.device).manual_seed(seed)
         # training draws nothing from Python's `random`, but a checkpoint saves its state: seeded, two
         # identical runs write identical checkpoints (and a plugin that uses it stays reproducible)
@@ -180,32 +164,16 @@ class Trainer:
         mine = np.arange(self.total_agents)[ranks.rank :: ranks.world]  # this rank's share of the agents
         if not len(mine):
             raise TrainError(f"{self.total_agents} agents cannot be shared by {ranks.world} ranks")
-        n_agents = len(mine)
-        # the public vector env without autoreset: a finished agent's next episode is drawn after the
-        # TSE has read where it ended. Its generator is the trainer's: episodes, TSE sub-targets and
-        # their batches draw from one stream, which the checkpoint saves.
-        self.envs = NavigationVectorEnv.over(
+        self.actors = Actors(
             self.space,
             kitchen[mine],
-            assigned=None if assigned is None else assigned[mine],
-            stop_ends=options.stop_ends_from == 0,
-            max_steps=options.episode_cap,
-            autoreset_mode="disabled",
-            observe=False,
+            None if assigned is None else assigned[mine],
+            options,
+            self.model,
+            self.generator,
+            seed,
+            self.reach(),
         )
-        self.envs.reset(seed=seed, options={"reach": self.reach()})
-        self.rng = self.envs.np_random
-        # the simulator's state: the trainer (not a plugin) indexes its feature tables, the TSE and the
-        # co-visibility counts by the agents' true states
-        self.nav = self.envs.navigators
-        self.hidden = net.initial_state(n_agents, self.device)
-        self.history = np.repeat(self.nav.state[:, None], self.model_config.history, 1) if self.ff else None
-        # TSE: the sub-targets sampled per episode; a rollout hands the windows of the episodes that
-        # ended in it to the update's relabelling
-        self.tick = 0  # steps of the run (every agent steps at each tick)
-        lstm_size = self.model_config.lstm if not self.ff else 0
-        self.tse = SubtargetSampler(n_agents, options.tse_subtargets, options.tse_window, lstm_size)
-        self.subtarget_types = subtarget_types(self.space)
         self.il = options.il or not rl
         self.dagger = self.il and options.il_expert == "dagger"
         self.experts = (
@@ -228,291 +196,97 @@ class Trainer:
         )  # fmt: skip
         return dict.fromkeys(keys, 0.0)
 
+    def reach(self) -> int | None:
+        """The curriculum's farthest start (actions from the destination) at this frame; None: off or over."""
+        return curriculum_reach(self.frames, self.opts.start_curriculum * self.run.frames)
+
     # -- one update ------------------------------------------------------------------------------
     def update(self) -> None:
         """One rollout of every agent (or, IL only, one expert batch) and one gradient step."""
-        graph = self.model.graph()
+        opts, graph = self.opts, self.model.graph()
         loss = torch.zeros((), device=self.device)
+
+        def add(name: str, term: torch.Tensor, weight: float = 1.0) -> None:
+            nonlocal loss
+            loss = loss + (term if weight == 1.0 else weight * term)
+            self.stats[name] += term.item()
+            self.stats[f"losses_{name}"] += 1
+
+        imitate = self.il and (not self.rl or self.frames < opts.il_fraction * self.run.frames)
+        self.actors.envs.stop_ends = opts.stop_ends_from is not None and self.frames >= opts.stop_ends_from
         windows: list = []  # TSE: the sub-target windows of the episodes that end in this rollout
-        imitate = self.il and (not self.rl or self.frames < self.opts.il_fraction * self.run.frames)
-        self.envs.stop_ends = self.opts.stop_ends_from is not None and self.frames >= self.opts.stop_ends_from
         if self.rl or self.dagger:
-            rl_loss, il_loss, windows = self.rollout(graph, imitate and self.dagger)
+            rollout = self.collect(graph)
+            rl_loss, dagger_loss = rollout_losses(
+                self.model, self.space, rollout, graph, opts, imitate and self.dagger
+            )
+            windows = rollout.windows
             if self.rl:
-                loss = loss + rl_loss
-                self.stats["rl"] += rl_loss.item()
-                self.stats["losses_rl"] += 1
-            if il_loss is not None:
-                loss = loss + self.opts.il_weight * il_loss
-                self.stats["il"] += il_loss.item()
-                self.stats["losses_il"] += 1
+                add("rl", rl_loss)
+            if dagger_loss is not None:
+                add("il", dagger_loss, opts.il_weight)
         if imitate and not self.dagger:
-            il_loss, n_frames = self.imitation(graph)
-            loss = loss + self.opts.il_weight * il_loss
-            self.stats["il"] += il_loss.item()
-            self.stats["losses_il"] += 1
+            il_loss, n_frames = expert_batch_loss(
+                self.model, self.space, self.experts, opts.il_batch, self.generator, graph
+            )
+            add("il", il_loss, opts.il_weight)
             if not self.rl:
                 self.stats["frames"] += n_frames  # this rank's (metrics sum the ranks')
                 self.frames += int(distributed.sum_tensor(torch.tensor(n_frames), self.ranks))
-        if self.rl and self.opts.tse:
-            tse_loss = self.skill_extension(graph, windows)
-            if tse_loss is not None:
-                loss = loss + self.opts.tse_weight * tse_loss
-                self.stats["tse"] += tse_loss.item()
-                self.stats["losses_tse"] += 1
+        if self.rl and opts.tse:
+            relabelled = relabelled_windows(windows, opts, self.actors.rng)
+            if relabelled is not None:
+                add(
+                    "tse",
+                    skill_extension_loss(self.model, self.space, relabelled, graph, opts),
+                    opts.tse_weight,
+                )
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         distributed.average_gradients(self.model.net.parameters(), self.ranks)
-        torch.nn.utils.clip_grad_norm_(self.model.net.parameters(), self.opts.max_grad_norm)
+        torch.nn.utils.clip_grad_norm_(self.model.net.parameters(), opts.max_grad_norm)
         self.optimizer.step()
         self.updates += 1
         distributed.check_replicas(self.model.net.parameters(), self.ranks, self.updates)
 
     def collect(self, graph) -> Rollout:
-        """n steps of every agent, without autograd (acting needs no graph): what they saw and did,
-        and the acting pass's logits and values. The ended episodes' TSE windows come with it; new
-        episodes are drawn in the rollout itself."""
-        opts, nav, space = self.opts, self.nav, self.space
-        n, b = opts.n_steps, nav.n
-        states = np.zeros((n, b), np.int64)
-        targets = np.zeros((n, b), np.int64)
-        actions = np.zeros((n, b), np.int64)
-        reached = np.zeros((n, b), np.int64)  # the state each step reached (before a new episode began)
-        histories = np.zeros((n, b, self.model_config.history), np.int64) if self.ff else None
-        rewards = np.zeros((n, b), np.float32)
-        dones = np.zeros((n, b), np.float32)
-        truncations = np.zeros((n, b), bool)
-        logits_seen = torch.zeros(n, b, N_ACTIONS, device=self.device)
-        values_seen = torch.zeros(n, b, device=self.device)
-        windows = []
-        start_hidden = hidden = detached(self.hidden)
-        scene = nav.kitchen if self.ff else None
-        with torch.no_grad():
-            for t in range(n):
-                states[t], targets[t] = nav.state, nav.target
-                if self.ff:
-                    histories[t] = self.history
-                goals = space.destination[nav.target]
-                before_hidden = hidden
-                logits, value, hidden, _ = self.model(
-                    space, nav.state, goals, hidden, graph, scene, self.history
-                )
-                logits_seen[t], values_seen[t] = logits, value
-                probs = F.softmax(logits, -1)
-                action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
-                a = action.cpu().numpy()
-                actions[t] = a
-                before = nav.state.copy()
-                _, r, terminated, truncated, infos = self.envs.step(a)
-                reached[t] = nav.state
-                if opts.wrong_stop_penalty:
-                    r = r - opts.wrong_stop_penalty * ((a == STOP) & ~nav.success)
-                done = terminated | truncated
-                self.stats["reward"] += float(r.sum())
-                rewards[t], dones[t] = r, done
-                cut = np.flatnonzero(truncated & ~terminated)
-                if len(cut):
-                    # a time limit is no end of the task: the return goes on past the cap, so the
-                    # last step's reward gains gamma V(the state it reached), as Stable-Baselines3 does
-                    # (the episode still ends here: nothing after it belongs to it)
-                    truncations[t, cut] = True
-                    history = None
-                    if self.ff:
-                        history = np.concatenate([self.history[cut, 1:], nav.state[cut, None]], 1)
-                    _, after, _, _ = self.model(
-                        space,
-                        nav.state[cut],
-                        space.destination[nav.target[cut]],
-                        rows_of(hidden, cut),
-                        graph,
-                        None if scene is None else scene[cut],
-                        history,
-                    )
-                    rewards[t, cut] += opts.gamma * after.cpu().numpy()
-                if opts.tse:
-                    candidate = (a != STOP) & (
-                        space.objects[nav.state] & self.subtarget_types[nav.target]
-                    ).any(1)
-                    taken = probs.gather(1, action[:, None]).squeeze(1).cpu().numpy()
-                    lstm_state = None
-                    if before_hidden is not None:
-                        lstm_state = torch.stack(before_hidden, 1).float().cpu().numpy()
-                    self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng, lstm_state)
-                self.tick += 1
-                finished = np.flatnonzero(done)
-                if len(finished):
-                    ended = infos["final_info"]
-                    self.stats["episodes"] += len(finished)
-                    self.stats["successes"] += int(ended["success"][finished].sum())
-                    np.add.at(self.target_stats[0], nav.target[finished], 1.0)
-                    np.add.at(self.target_stats[1], nav.target[finished], ended["success"][finished])
-                    self.stats["returns"] += float(ended["episode_return"][finished].sum())
-                    if opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
-                        windows += self.tse.finish(finished, self.tick)
-                    self.envs.reset(options={"reset_mask": done, "reach": self.reach()})
-                hidden = keep_rows(hidden, self.model.tensor(~done).float())
-                if self.ff:
-                    self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
-                    self.history[finished] = nav.state[finished, None]
-            goals = space.destination[nav.target]
-            _, bootstrap, _, _ = self.model(space, nav.state, goals, hidden, graph, scene, self.history)
-        self.hidden = hidden
+        """The acting half: n steps of every agent (`Actors.collect`); the knowledge graph's
+        co-visibility counts then add the views they reached, every rank's on every rank."""
+        rollout = self.actors.collect(self.model, graph, self.reach(), self.stats, self.target_stats)
+        n, b = rollout.states.shape
         if self.model.uses_graph:
-            covis = self.model.covis
+            covis, seen = self.model.covis, self.space.objects[rollout.reached.reshape(-1)]
             if self.ranks.world == 1:
-                covis.add(space.objects[reached.reshape(-1)])
-            else:  # every rank's frames count, on every rank
+                covis.add(seen)
+            else:
                 before = covis.counts.clone()
-                covis.add(space.objects[reached.reshape(-1)])
+                covis.add(seen)
                 covis.counts = before + distributed.sum_tensor(covis.counts - before, self.ranks)
         self.frames += n * self.total_agents  # every rank's agents stepped n times
         self.stats["frames"] += n * b  # this rank's (metrics sum the ranks')
-        return Rollout(
-            states, targets, actions, rewards, dones, truncations, histories, scene, start_hidden,
-            bootstrap, logits_seen, values_seen, windows,
-        )  # fmt: skip
-
-    def rollout(self, graph, imitate: bool = False) -> tuple[torch.Tensor, torch.Tensor | None, list]:
-        """n steps of every agent (`collect`), then the learning pass over them; returns the A2C loss
-        of the rollout, when `imitate` the cross-entropy of the teacher's actions on every visited
-        state (DAgger), and (TSE) the sub-target windows of the episodes that ended. `Model.unroll`
-        replays the rollout's states with autograd, the non-recurrent layers once for all n x B rows,
-        which costs far fewer small operations than a graph built step by step."""
-        opts, space = self.opts, self.space
-        ro = self.collect(graph)
-        n, b = ro.states.shape
-        keep = self.model.tensor(1.0 - ro.dones)
-        goals = space.destination[ro.targets]
-        logits, values = self.model.unroll(
-            space, ro.states, goals, ro.start_hidden, keep, graph, ro.scene, ro.histories
-        )
-        log_p = F.log_softmax(logits, -1)
-        taken = log_p.gather(2, self.model.tensor(ro.actions)[..., None]).squeeze(2)
-        entropies = -(log_p.exp() * log_p).sum(-1)
-        tensor = self.model.tensor
-        returns = n_step_returns(tensor(ro.rewards), tensor(ro.dones), ro.bootstrap, opts.gamma)
-        loss, _ = actor_critic_loss(taken, values, entropies, returns, opts.value_weight, opts.entropy)
-        il = None
-        if imitate:
-            optimal, known = optimal_actions(space, ro.targets.reshape(-1), ro.states.reshape(-1))
-            il = optimal_action_loss(log_p.reshape(n * b, -1), optimal, known).mean()
-        return loss, il, ro.windows
-
-    def reach(self) -> int | None:
-        """The curriculum's farthest start (actions from the destination) at this frame; None: off or over."""
-        return curriculum_reach(self.frames, self.opts.start_curriculum * self.run.frames)
-
-    def subtrajectories(self, windows: list) -> Sequences | None:
-        """Up to tse_batch of the sub-target windows of the episodes that ended during a rollout,
-        relabelled; the rest are dropped. `Sequences.hidden` holds the LSTM state each relabelled
-        episode starts from: the one the agent had there."""
-        if not windows:
-            return None
-        take = self.rng.choice(len(windows), min(self.opts.tse_batch, len(windows)), replace=False)
-        seqs, goals, rewards, behaviour, hidden = [], [], [], [], []
-        for j in sorted(take):
-            states, actions, probs, goal, start, stop = windows[j]
-            # the relabelled episode starts after the window's last Stop: in the task "reach the
-            # sub-target and Stop" that Stop ended the episode (a failure), so the walk after it is
-            # the whole episode; keeping it would reward a wrong Stop with the sub-target's +10. The
-            # failure itself (tse_failures) is a one-step episode: Stop where it stopped, -0.01.
-            # (Only where training's wrong Stop is a no-op: where it ends the episode, no window holds one.)
-            stops = np.flatnonzero(actions == STOP)
-            if len(stops):
-                last = stops[-1]
-                if self.opts.tse_failures and states[last] != goal:
-                    seqs.append(([int(states[last])], [STOP]))
-                    goals.append(goal)
-                    rewards.append(reward(np.zeros(1, bool), np.zeros(1, bool)))
-                    behaviour.append(probs[last : last + 1].astype(np.float64))
-                    hidden.append(stop)
-                states, actions, probs = states[last + 1 :], actions[last + 1 :], probs[last + 1 :]
-            if len(actions) == 0:
-                continue
-            s, a, r, mu = relabel(list(states) + [goal], actions, probs, goal)
-            seqs.append((s, a))
-            goals.append(goal)
-            rewards.append(r)
-            behaviour.append(mu)
-            hidden.append(start)
-        if not seqs:
-            return None
-        seq = pad(seqs, goals)
-        seq.rewards = np.zeros(seq.states.shape, np.float32)
-        seq.behaviour = np.full(seq.states.shape, np.nan)
-        for i, (r, mu) in enumerate(zip(rewards, behaviour)):
-            seq.rewards[i, : len(r)], seq.behaviour[i, : len(mu)] = r, mu
-        seq.hidden = np.stack(hidden)  # (N, 2, lstm)
-        return seq
-
-    def sequence_pass(self, seq: Sequences, graph):
-        """A separate pass of the model over padded sequences, from the LSTM states `seq.hidden` (zeros
-        where None): logits (L, N, 10), values (L, N)."""
-        n, length = seq.states.shape
-        states = np.ascontiguousarray(seq.states.T)
-        goals = np.broadcast_to(seq.goal, (length, n))
-        history = None
-        if self.ff:  # the last `history` states of each step, the first state repeated before it
-            back = np.arange(length)[:, None] - np.arange(self.model_config.history)[::-1]
-            history = np.ascontiguousarray(np.transpose(seq.states[:, np.clip(back, 0, None)], (1, 0, 2)))
-        scene = self.space.kitchen_of[seq.states[:, 0]] if self.ff else None
-        hidden = self.model.net.initial_state(n, self.device)
-        if hidden is not None and seq.hidden is not None:
-            start = self.model.tensor(seq.hidden)
-            hidden = (start[:, 0].to(hidden[0].dtype), start[:, 1].to(hidden[1].dtype))
-        return self.model.unroll(self.space, states, goals, hidden, None, graph, scene, history)
-
-    def imitation(self, graph) -> tuple[torch.Tensor, int]:
-        """Cross-entropy on il_batch expert trajectories drawn at random."""
-        ex = self.experts
-        n = len(ex.goal)
-        order = torch.randperm(n, generator=self.generator, device=self.device)
-        take = order[: min(self.opts.il_batch, n)].sort().values.cpu().numpy()
-        seq = Sequences(ex.states[take], ex.actions[take], ex.mask[take], ex.goal[take])
-        last = int(seq.mask.sum(1).max())
-        seq = Sequences(seq.states[:, :last], seq.actions[:, :last], seq.mask[:, :last], seq.goal)
-        logits, _ = self.sequence_pass(seq, graph)
-        mask = self.model.tensor(seq.mask.T.astype(np.float32))
-        return imitation_loss(logits, self.model.tensor(seq.actions.T), mask), int(seq.mask.sum())
-
-    def skill_extension(self, graph, windows: list) -> torch.Tensor | None:
-        """A2C's loss on the rollout's relabelled sub-trajectories (whole episodes: Monte-Carlo
-        returns), optionally with truncated importance weights min(1, pi/mu)."""
-        seq = self.subtrajectories(windows)
-        if seq is None:
-            return None
-        logits, values = self.sequence_pass(seq, graph)
-        log_p = F.log_softmax(logits, -1)
-        tensor = self.model.tensor
-        actions = tensor(seq.actions.T)
-        taken = log_p.gather(2, actions[..., None]).squeeze(2)
-        entropy = -(log_p.exp() * log_p).sum(-1)
-        mask = tensor(seq.mask.T.astype(np.float32))
-        rewards = tensor(seq.rewards.T)
-        dones = torch.zeros_like(rewards)
-        dones[tensor(seq.mask.sum(1) - 1), torch.arange(len(seq.goal), device=self.device)] = 1.0
-        returns = n_step_returns(
-            rewards, dones, torch.zeros(len(seq.goal), device=self.device), self.opts.gamma
-        )
-        weights = None
-        if self.opts.tse_importance:
-            # min(1, pi/mu) on the steps the agent took. The appended Stop has no mu (the agent never
-            # took it there) and keeps weight 1: it is the relabelled task's one demonstration of
-            # success, and weighting it by pi would scale its gradient by pi(Stop), least where it
-            # is most needed
-            mu = tensor(seq.behaviour.T).float()
-            ratio = (taken.detach().exp() / mu).clamp(max=1.0)
-            weights = torch.where(torch.isnan(mu), torch.ones_like(ratio), ratio)
-        loss, _ = actor_critic_loss(
-            taken, values, entropy, returns, self.opts.value_weight, self.opts.entropy, weights, mask
-        )
-        return loss
+        return rollout
 
     # -- validation ------------------------------------------------------------------------------
     def validate(self) -> tuple[float, float, int, int]:
         """SR and SPL (percent) on the validation kitchens' fixed episodes (the first val_episodes per
         target), cap 1000, under the success rule, the frames and the episodes it took; its own seeded
-        sampling, so training is untouched."""
+        sampling, so training is untouched. FF A3C: `ff_validation_episodes`, in its own kitchens."""
+        if self.ff:
+            targets, starts = ff_validation_episodes(self.space, self.validation_count(), self.run.seed)
+            scene = self.space.target_kitchen[targets]
+            sr, spl, frames = run_episodes(
+                self.model, self.space, targets, starts, SEEN_VALIDATION_CAP, self.run.seed, scene
+            )
+            return sr, spl, frames, len(targets)
+        sp = self.validation_space()
+        rows = [(r, s) for r, starts in enumerate(sp.fixed_starts) for s in starts[: self.opts.val_episodes]]
+        targets = np.array([r for r, _ in rows], np.int64)
+        starts = np.array([s for _, s in rows], np.int64)
+        sr, spl, frames = run_episodes(self.model, sp, targets, starts, VALIDATION_CAP, self.run.seed)
+        return sr, spl, frames, len(rows)
+
+    def validation_space(self) -> StateSpace:
+        """The first val_kitchens validation kitchens, all their targets; built on first use."""
         if self.val_space is None:
             names = load_task_file()["splits"]["val"][: self.opts.val_kitchens]
             self.val_space = build_space(
@@ -521,42 +295,11 @@ class Trainer:
                 self.opts.success_rule,
                 self.model_config.pixels,
             )
-        sp = self.val_space
-        rows = [(r, s) for r, starts in enumerate(sp.fixed_starts) for s in starts[: self.opts.val_episodes]]
-        targets = np.array([r for r, _ in rows], np.int64)
-        starts = np.array([s for _, s in rows], np.int64)
-        if self.ff:
-            targets, starts = self.ff_validation_episodes(len(rows))
-            scene = self.space.target_kitchen[targets]
-            sr, spl, frames = run_episodes(
-                self.model, self.space, targets, starts, SEEN_VALIDATION_CAP, self.run.seed, scene
-            )
-            return sr, spl, frames, len(targets)
-        sr, spl, frames = run_episodes(self.model, sp, targets, starts, VALIDATION_CAP, self.run.seed)
-        return sr, spl, frames, len(rows)
+        return self.val_space
 
-    def ff_validation_episodes(self, at_least: int) -> tuple[np.ndarray, np.ndarray]:
-        """FF A3C's validation episodes (Zhu et al. had no validation rooms, and its heads exist for its
-        training kitchens only): the seen targets of its training kitchens that have a training start
-        besides their fixed evaluation episodes' (a small kitchen's target can have none: 7 of the
-        paper preset's 140, six in FloorPlan25 and one in FloorPlan29), as many episodes each as make
-        at least `at_least` in all (the other rows' validation count), from those starts, drawn with
-        the run's own seed. The same every time."""
-        sp = self.space
-        pools = []
-        for r in range(len(sp.target_ids)):
-            pool = sp.start_flat[sp.start_ptr[r] : sp.start_ptr[r + 1]]
-            pools.append(pool[~np.isin(pool, sp.fixed_starts[r])])
-        kept = [r for r, pool in enumerate(pools) if len(pool)]
-        if not kept:
-            raise TrainError("no training target has a training start outside the fixed episodes")
-        per_target = -(-at_least // len(kept))
-        rng = np.random.default_rng([FF_VALIDATION_SEED, self.run.seed])
-        targets, starts = [], []
-        for r in kept:
-            starts.append(rng.choice(pools[r], per_target, replace=len(pools[r]) < per_target))
-            targets.append(np.full(per_target, r, np.int64))
-        return np.concatenate(targets), np.concatenate(starts).astype(np.int64)
+    def validation_count(self) -> int:
+        """How many episodes the other rows validate on: val_episodes per target of the val kitchens."""
+        return sum(min(len(s), self.opts.val_episodes) for s in self.validation_space().fixed_starts)
 
     # -- checkpoints -----------------------------------------------------------------------------
     def state_dict(self, weights: bool = True) -> dict:
@@ -569,7 +312,7 @@ class Trainer:
             "seed": self.run.seed,
             "frames": self.frames,
             "updates": self.updates,
-            "tick": self.tick,
+            "tick": self.actors.tick,
             "best_val_sr": float(self.best_val_sr),
             "val_max": float(self.val_max),
             "stats": {k: float(v) for k, v in self.stats.items()},
@@ -578,15 +321,12 @@ class Trainer:
             "optimizer": self.optimizer.state_dict() if weights else None,
             "covis": self.model.covis.state_dict(),
             "rng": {
-                "numpy": json.dumps(self.rng.bit_generator.state),  # plain data: weights_only loads it
+                "numpy": json.dumps(self.actors.rng.bit_generator.state),  # plain data: weights_only loads it
                 "sampling": self.generator.get_state(),
                 "torch": torch.get_rng_state(),
                 "python": random.getstate(),
             },
-            "agents": self.nav.state_dict(),
-            "hidden": self.hidden,
-            "history": None if self.history is None else torch.from_numpy(self.history.copy()),
-            "tse": self.tse.state_dict(),
+            **self.actors.state_dict(),  # agents, hidden, history, tse
         }
 
     def policy_state(self) -> dict:
@@ -610,15 +350,12 @@ class Trainer:
         self.model.net.load_state_dict(ck["model"])
         self.optimizer.load_state_dict(ck["optimizer"])
         self.model.covis.load_state_dict(ck["covis"])
-        self.rng.bit_generator.state = json.loads(ck["rng"]["numpy"])
+        self.actors.rng.bit_generator.state = json.loads(ck["rng"]["numpy"])
         self.generator.set_state(ck["rng"]["sampling"])
         torch.set_rng_state(ck["rng"]["torch"])
         random.setstate(ck["rng"]["python"])
-        self.nav.load_state_dict(ck["agents"])
-        self.hidden = None if ck["hidden"] is None else tuple(h.to(self.device) for h in ck["hidden"])
-        self.history = None if ck["history"] is None else ck["history"].numpy().copy()
-        self.tse.load_state_dict(ck["tse"])
-        self.frames, self.updates, self.tick = ck["frames"], ck["updates"], ck["tick"]
+        self.actors.load_state_dict(ck, self.device)
+        self.frames, self.updates, self.actors.tick = ck["frames"], ck["updates"], ck["tick"]
         self.best_val_sr, self.stats = ck["best_val_sr"], dict(ck["stats"])
         self.val_max = ck.get("val_max", self.best_val_sr)
         if "target_stats" in ck:
@@ -626,7 +363,170 @@ class Trainer:
 
 
 # ------------------------------------------------------------------------------------------------
-# 2. The loop: logs, checkpoints, resumption
+# 2. The learning half: the losses of one update, from a rollout and from IL's and TSE's sequences
+
+
+def rollout_losses(
+    model: Model, space: StateSpace, ro: Rollout, graph, opts: TrainOptions, imitate: bool
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The A2C loss of a rollout and, when `imitate`, the cross-entropy of the teacher's actions on
+    every visited state (DAgger). `Model.unroll` replays the rollout's states with autograd, the
+    non-recurrent layers once for all n x B rows, which costs far fewer small operations than a graph
+    built step by step while acting."""
+    n, b = ro.states.shape
+    keep = model.tensor(1.0 - ro.dones)
+    goals = space.destination[ro.targets]
+    logits, values = model.unroll(
+        space, ro.states, goals, ro.start_hidden, keep, graph, ro.scene, ro.histories
+    )
+    log_p = F.log_softmax(logits, -1)
+    taken = log_p.gather(2, model.tensor(ro.actions)[..., None]).squeeze(2)
+    entropies = -(log_p.exp() * log_p).sum(-1)
+    returns = n_step_returns(model.tensor(ro.rewards), model.tensor(ro.dones), ro.bootstrap, opts.gamma)
+    loss, _ = actor_critic_loss(taken, values, entropies, returns, opts.value_weight, opts.entropy)
+    il = None
+    if imitate:
+        optimal, known = optimal_actions(space, ro.targets.reshape(-1), ro.states.reshape(-1))
+        il = optimal_action_loss(log_p.reshape(n * b, -1), optimal, known).mean()
+    return loss, il
+
+
+def expert_batch_loss(
+    model: Model, space: StateSpace, experts: Sequences, batch: int, generator: torch.Generator, graph
+) -> tuple[torch.Tensor, int]:
+    """IL: the cross-entropy on `batch` expert trajectories drawn at random, and the frames they hold."""
+    n = len(experts.goal)
+    order = torch.randperm(n, generator=generator, device=model.device)
+    take = order[: min(batch, n)].sort().values.cpu().numpy()
+    ex = experts
+    seq = Sequences(ex.states[take], ex.actions[take], ex.mask[take], ex.goal[take])
+    last = int(seq.mask.sum(1).max())
+    seq = Sequences(seq.states[:, :last], seq.actions[:, :last], seq.mask[:, :last], seq.goal)
+    logits, _ = sequence_pass(model, space, seq, graph)
+    mask = model.tensor(seq.mask.T.astype(np.float32))
+    return imitation_loss(logits, model.tensor(seq.actions.T), mask), int(seq.mask.sum())
+
+
+def relabelled_windows(windows: list, opts: TrainOptions, rng: np.random.Generator) -> Sequences | None:
+    """TSE: up to tse_batch of the sub-target windows of the episodes that ended during a rollout,
+    relabelled; the rest are dropped. `Sequences.hidden` holds the LSTM state each relabelled
+    episode starts from: the one the agent had there."""
+    if not windows:
+        return None
+    take = rng.choice(len(windows), min(opts.tse_batch, len(windows)), replace=False)
+    seqs, goals, rewards, behaviour, hidden = [], [], [], [], []
+    for j in sorted(take):
+        states, actions, probs, goal, start, stop = windows[j]
+        # the relabelled episode starts after the window's last Stop: in the task "reach the
+        # sub-target and Stop" that Stop ended the episode (a failure), so the walk after it is
+        # the whole episode; keeping it would reward a wrong Stop with the sub-target's +10. The
+        # failure itself (tse_failures) is a one-step episode: Stop where it stopped, -0.01.
+        # (Only where training's wrong Stop is a no-op: where it ends the episode, no window holds one.)
+        stops = np.flatnonzero(actions == STOP)
+        if len(stops):
+            last = stops[-1]
+            if opts.tse_failures and states[last] != goal:
+                seqs.append(([int(states[last])], [STOP]))
+                goals.append(goal)
+                rewards.append(reward(np.zeros(1, bool), np.zeros(1, bool)))
+                behaviour.append(probs[last : last + 1].astype(np.float64))
+                hidden.append(stop)
+            states, actions, probs = states[last + 1 :], actions[last + 1 :], probs[last + 1 :]
+        if len(actions) == 0:
+            continue
+        s, a, r, mu = relabel(list(states) + [goal], actions, probs, goal)
+        seqs.append((s, a))
+        goals.append(goal)
+        rewards.append(r)
+        behaviour.append(mu)
+        hidden.append(start)
+    if not seqs:
+        return None
+    seq = pad(seqs, goals)
+    seq.rewards = np.zeros(seq.states.shape, np.float32)
+    seq.behaviour = np.full(seq.states.shape, np.nan)
+    for i, (r, mu) in enumerate(zip(rewards, behaviour)):
+        seq.rewards[i, : len(r)], seq.behaviour[i, : len(mu)] = r, mu
+    seq.hidden = np.stack(hidden)  # (N, 2, lstm)
+    return seq
+
+
+def skill_extension_loss(
+    model: Model, space: StateSpace, seq: Sequences, graph, opts: TrainOptions
+) -> torch.Tensor:
+    """TSE: A2C's loss on relabelled sub-trajectories (whole episodes: Monte-Carlo returns),
+    optionally with truncated importance weights min(1, pi/mu)."""
+    logits, values = sequence_pass(model, space, seq, graph)
+    log_p = F.log_softmax(logits, -1)
+    tensor = model.tensor
+    actions = tensor(seq.actions.T)
+    taken = log_p.gather(2, actions[..., None]).squeeze(2)
+    entropy = -(log_p.exp() * log_p).sum(-1)
+    mask = tensor(seq.mask.T.astype(np.float32))
+    rewards = tensor(seq.rewards.T)
+    dones = torch.zeros_like(rewards)
+    dones[tensor(seq.mask.sum(1) - 1), torch.arange(len(seq.goal), device=model.device)] = 1.0
+    returns = n_step_returns(rewards, dones, torch.zeros(len(seq.goal), device=model.device), opts.gamma)
+    weights = None
+    if opts.tse_importance:
+        # min(1, pi/mu) on the steps the agent took. The appended Stop has no mu (the agent never
+        # took it there) and keeps weight 1: it is the relabelled task's one demonstration of
+        # success, and weighting it by pi would scale its gradient by pi(Stop), least where it
+        # is most needed
+        mu = tensor(seq.behaviour.T).float()
+        ratio = (taken.detach().exp() / mu).clamp(max=1.0)
+        weights = torch.where(torch.isnan(mu), torch.ones_like(ratio), ratio)
+    loss, _ = actor_critic_loss(
+        taken, values, entropy, returns, opts.value_weight, opts.entropy, weights, mask
+    )
+    return loss
+
+
+def sequence_pass(model: Model, space: StateSpace, seq: Sequences, graph):
+    """A separate pass of the model over padded sequences (IL's, TSE's), from the LSTM states
+    `seq.hidden` (zeros where None): logits (L, N, 10), values (L, N)."""
+    n, length = seq.states.shape
+    states = np.ascontiguousarray(seq.states.T)
+    goals = np.broadcast_to(seq.goal, (length, n))
+    history, scene = None, None
+    if (
+        model.config.arch == "ff"
+    ):  # the last `history` states of each step, the first state repeated before it
+        back = np.arange(length)[:, None] - np.arange(model.config.history)[::-1]
+        history = np.ascontiguousarray(np.transpose(seq.states[:, np.clip(back, 0, None)], (1, 0, 2)))
+        scene = space.kitchen_of[seq.states[:, 0]]
+    hidden = model.net.initial_state(n, model.device)
+    if hidden is not None and seq.hidden is not None:
+        start = model.tensor(seq.hidden)
+        hidden = (start[:, 0].to(hidden[0].dtype), start[:, 1].to(hidden[1].dtype))
+    return model.unroll(space, states, goals, hidden, None, graph, scene, history)
+
+
+def ff_validation_episodes(space: StateSpace, at_least: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """FF A3C's validation episodes (Zhu et al. had no validation rooms, and its heads exist for its
+    training kitchens only): the seen targets of its training kitchens that have a training start
+    besides their fixed evaluation episodes' (a small kitchen's target can have none: 7 of the
+    paper preset's 140, six in FloorPlan25 and one in FloorPlan29), as many episodes each as make
+    at least `at_least` in all (the other rows' validation count), from those starts, drawn with
+    the run's own seed. The same every time."""
+    pools = []
+    for r in range(len(space.target_ids)):
+        pool = space.start_flat[space.start_ptr[r] : space.start_ptr[r + 1]]
+        pools.append(pool[~np.isin(pool, space.fixed_starts[r])])
+    kept = [r for r, pool in enumerate(pools) if len(pool)]
+    if not kept:
+        raise TrainError("no training target has a training start outside the fixed episodes")
+    per_target = -(-at_least // len(kept))
+    rng = np.random.default_rng([FF_VALIDATION_SEED, seed])
+    targets, starts = [], []
+    for r in kept:
+        starts.append(rng.choice(pools[r], per_target, replace=len(pools[r]) < per_target))
+        targets.append(np.full(per_target, r, np.int64))
+    return np.concatenate(targets), np.concatenate(starts).astype(np.int64)
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. The loop: logs, checkpoints, resumption
 
 
 def _csv_text(rows: list[dict]) -> str:

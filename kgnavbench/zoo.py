@@ -1,4 +1,4 @@
-"""Stage 24 — zoo: finished training runs shipped into a folder of their own (`zoo/`), and found there.
+"""Stage 25 — zoo: finished training runs shipped into a folder of their own (`zoo/`), and found there.
 
 `ship_run` copies a finished run (config.json, metrics.csv, finished.json, best.pt and, with "last",
 last.pt, weights only, each with its sha256) into the zoo, whole or not at all. `trained_run` finds, in

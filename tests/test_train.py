@@ -59,7 +59,10 @@ def test_curriculum_reach_grows_with_frames_then_ends(tmp_path, floorplan1_tasks
     trainer = train.Trainer(
         tiny_run(tmp_path, frames=2000), tiny_options(start_curriculum=0.5), models.ModelConfig(), True
     )
-    assert trainer.reach() == 0 and (trainer.space.dist[trainer.nav.target, trainer.nav.state] < 10).all()
+    assert (
+        trainer.reach() == 0
+        and (trainer.space.dist[trainer.actors.nav.target, trainer.actors.nav.state] < 10).all()
+    )
     trainer.frames = 500
     assert trainer.reach() == vecenv.CURRICULUM_REACH // 2
     trainer.frames = 1000
@@ -85,11 +88,11 @@ def test_stop_ends_from_and_wrong_stop_penalty(tmp_path, floorplan1_tasks, monke
     rewards = []
     monkeypatch.setattr(train, "n_step_returns", lambda r, *a: rewards.append(r.clone()) or r.clone())
     trainer.update()  # frames 0: a wrong Stop is a no-op; the agents stay where they started
-    starts = trainer.nav.start.copy()
-    assert trainer.stats["episodes"] == 0 and (trainer.nav.state == starts).all()
+    starts = trainer.actors.nav.start.copy()
+    assert trainer.stats["episodes"] == 0 and (trainer.actors.nav.state == starts).all()
     assert torch.allclose(rewards[-1], torch.tensor(-0.01 - 0.5))
     trainer.update()  # frames 12 >= 10: every Stop ends its episode
-    assert trainer.stats["episodes"] == 3 * trainer.nav.n
+    assert trainer.stats["episodes"] == 3 * trainer.actors.nav.n
     assert torch.allclose(rewards[-1], torch.tensor(-0.01 - 0.5))
 
 
@@ -208,15 +211,15 @@ def test_each_agent_keeps_one_target(tmp_path, floorplan1_tasks):
     trainer = train.Trainer(
         tiny_run(tmp_path), tiny_options(agents_per_kitchen=14, episode_cap=6), models.ModelConfig(), True
     )
-    first = trainer.nav.target.copy()
+    first = trainer.actors.nav.target.copy()
     assert sorted(first.tolist()) == sorted(list(range(7)) * 2)
     assert first.tolist() == [trainer.space.kitchen_rows[j % 7] for j in range(14)]
     episodes = 0
     for _ in range(6):
         before = trainer.stats["episodes"]
-        trainer.rollout(None)
+        trainer.collect(None)
         episodes += trainer.stats["episodes"] - before
-        assert (trainer.nav.target == first).all()
+        assert (trainer.actors.nav.target == first).all()
     assert episodes >= 14  # every agent began a new episode at least once (cap 6)
     with pytest.raises(runs.TrainError, match="7 training targets but 4 agents"):
         train.Trainer(tiny_run(tmp_path), tiny_options(agents_per_kitchen=4), models.ModelConfig(), True)
@@ -226,7 +229,7 @@ def test_each_agent_keeps_one_target(tmp_path, floorplan1_tasks):
         models.ModelConfig(),
         True,
     )
-    assert drawn.nav.assigned is None
+    assert drawn.actors.nav.assigned is None
 
 
 def test_tse_subtrajectories_end_at_their_subtarget_with_a_successful_stop(tmp_path, floorplan1_tasks):
@@ -236,8 +239,8 @@ def test_tse_subtrajectories_end_at_their_subtarget_with_a_successful_stop(tmp_p
     sp = trainer.space
     successes = failures = 0
     for _ in range(60):  # rollouts until both kinds of relabelled episode were seen
-        _, _, windows = trainer.rollout(None)
-        seq = trainer.subtrajectories(windows)
+        windows = trainer.collect(None).windows
+        seq = train.relabelled_windows(windows, trainer.opts, trainer.actors.rng)
         if seq is None:
             continue
         for i in range(len(seq.goal)):
@@ -270,19 +273,23 @@ def test_lstm_state_is_reset_at_episode_boundaries(tmp_path, floorplan1_tasks):
     """An agent whose episode ends at step t enters step t + 1 with a zero LSTM state; the others keep
     theirs."""
     trainer = train.Trainer(tiny_run(tmp_path), tiny_options(), models.ModelConfig(lstm=32, hidden=32), True)
-    trainer.rollout(None)  # the LSTM states are nonzero now
+    trainer.collect(None)  # the LSTM states are nonzero now
     seen_states = []
     net = trainer.model.net
     original = net.forward
 
     def spy(*args, **kwargs):
-        if args[4][0].shape[0] == trainer.nav.n:  # the acting passes, not a truncation's V(s) of one agent
+        if (
+            args[4][0].shape[0] == trainer.actors.nav.n
+        ):  # the acting passes, not a truncation's V(s) of one agent
             seen_states.append(tuple(h.detach().clone() for h in args[4]))
         return original(*args, **kwargs)
 
     net.forward = spy
-    trainer.nav.cap[0] = trainer.nav.steps[0] + 2  # agent 0's episode is truncated at the second step
-    trainer.rollout(None)
+    trainer.actors.nav.cap[0] = (
+        trainer.actors.nav.steps[0] + 2
+    )  # agent 0's episode is truncated at the second step
+    trainer.collect(None)
     h_before, h_after = seen_states[1][0], seen_states[2][0]
     assert h_before[0].abs().sum() > 0 and h_after[0].abs().sum() == 0
     assert (h_after[1:].abs().sum(1) > 0).all()
@@ -298,7 +305,9 @@ def test_imitation_loss_falls_on_a_fixed_batch(tmp_path, floorplan1_tasks):
     torch.manual_seed(0)
     losses = []
     for _ in range(40):
-        loss, _ = trainer.imitation(None)
+        loss, _ = train.expert_batch_loss(
+            trainer.model, trainer.space, trainer.experts, trainer.opts.il_batch, trainer.generator, None
+        )
         trainer.optimizer.zero_grad()
         loss.backward()
         trainer.optimizer.step()
@@ -637,10 +646,10 @@ def test_episode_cap_truncates_training_episodes(tmp_path, floorplan1_tasks):
     trainer = train.Trainer(
         tiny_run(tmp_path), tiny_options(episode_cap=3, n_steps=7), models.ModelConfig(), True
     )
-    trainer.rollout(None)
+    trainer.collect(None)
     # every agent is at most 3 actions into its current episode, and its first ended by the cap or success
-    assert (trainer.nav.steps <= 3).all()
-    assert trainer.stats["episodes"] >= trainer.nav.n
+    assert (trainer.actors.nav.steps <= 3).all()
+    assert trainer.stats["episodes"] >= trainer.actors.nav.n
     with pytest.raises(runs.TrainError, match="episode_cap"):
         tiny_options(episode_cap=0)
 
@@ -690,7 +699,9 @@ def test_unroll_gives_the_rollouts_logits_and_values_step_for_step(tmp_path, flo
     across episode ends."""
     trainer = train.Trainer(tiny_run(tmp_path), tiny_options(n_steps=12), method_config, True)
     trainer.collect(trainer.model.graph())  # the LSTM states are nonzero now
-    trainer.nav.cap[:3] = trainer.nav.steps[:3] + np.array([2, 5, 9])  # three episodes end inside
+    trainer.actors.nav.cap[:3] = trainer.actors.nav.steps[:3] + np.array(
+        [2, 5, 9]
+    )  # three episodes end inside
     graph = trainer.model.graph()
     ro = trainer.collect(graph)
     assert ro.dones[:, :3].sum() >= 3 and ro.truncated[[1, 4, 8], [0, 1, 2]].all()
@@ -715,7 +726,9 @@ def test_a_truncated_episode_bootstraps_from_the_value_of_its_last_state(tmp_pat
         for p in net.value.parameters():
             p.zero_()
         net.value.bias.fill_(3.0)
-    trainer.nav.cap[:] = trainer.nav.steps + 4  # every running episode reaches the cap at step 4
+    trainer.actors.nav.cap[:] = (
+        trainer.actors.nav.steps + 4
+    )  # every running episode reaches the cap at step 4
     ro = trainer.collect(None)
     gamma = trainer.opts.gamma
     cut = ro.truncated
@@ -763,14 +776,14 @@ def test_tse_replays_from_the_stored_lstm_state(tmp_path, floorplan1_tasks):
     options = tiny_options(tse=True, episode_cap=30, n_steps=10)
     trainer = train.Trainer(tiny_run(tmp_path), options, models.ModelConfig(lstm=32, hidden=32), True)
     for _ in range(40):
-        seq = trainer.subtrajectories(trainer.collect(None).windows)
+        seq = train.relabelled_windows(trainer.collect(None).windows, trainer.opts, trainer.actors.rng)
         if seq is not None and np.abs(seq.hidden).sum() > 0:
             break
     assert seq is not None and seq.hidden.shape == (len(seq.goal), 2, 32) and np.abs(seq.hidden).sum() > 0
     with torch.no_grad():
-        stored, _ = trainer.sequence_pass(seq, None)
+        stored, _ = train.sequence_pass(trainer.model, trainer.space, seq, None)
         seq.hidden = None
-        zeros, _ = trainer.sequence_pass(seq, None)
+        zeros, _ = train.sequence_pass(trainer.model, trainer.space, seq, None)
     assert not torch.allclose(stored, zeros)
 
 
@@ -788,7 +801,7 @@ def test_a_learner_masters_a_small_task(tmp_path):
     trainer = train.Trainer(run, options, config, True)
     trainer.load_state_dict(runs.load_checkpoint(tmp_path / "last.pt"))
     space = trainer.space
-    rows = np.unique(trainer.nav.assigned)
+    rows = np.unique(trainer.actors.nav.assigned)
     assert len(rows) == 2
     targets = np.repeat(rows, 20)
     starts = np.concatenate([np.array(space.fixed_starts[r][:20]) for r in rows])
@@ -928,23 +941,23 @@ def test_ff_a3c_is_validated_in_its_own_kitchens_with_their_heads(tmp_path, floo
     cfg = models.ModelConfig(arch="ff", hidden=32)
     trainer = train.Trainer(tiny_run(tmp_path), tiny_options(), cfg, True)
     sp = trainer.space
-    targets, starts = trainer.ff_validation_episodes(745)
+    targets, starts = train.ff_validation_episodes(sp, 745, trainer.run.seed)
     assert len(targets) >= 745 and sorted(set(targets.tolist())) == list(range(len(sp.target_ids)))
     for r, s in zip(targets.tolist(), starts.tolist()):
         assert s in sp.start_flat[sp.start_ptr[r] : sp.start_ptr[r + 1]] and s not in sp.fixed_starts[r]
-    again = trainer.ff_validation_episodes(745)
+    again = train.ff_validation_episodes(sp, 745, trainer.run.seed)
     assert np.array_equal(again[0], targets) and np.array_equal(again[1], starts)
     # a target whose every training start is a fixed episode's (FloorPlan25's small kitchen at the
     # paper's 100 episodes per target) is left out, the others make up the count
     fixed = list(sp.fixed_starts)
     sp.fixed_starts[0] = tuple(sp.start_flat[sp.start_ptr[0] : sp.start_ptr[1]].tolist())
-    short, _ = trainer.ff_validation_episodes(745)
+    short, _ = train.ff_validation_episodes(sp, 745, trainer.run.seed)
     assert len(short) >= 745 and sorted(set(short.tolist())) == list(range(1, len(sp.target_ids)))
     sp.fixed_starts[:] = [
         tuple(sp.start_flat[sp.start_ptr[r] : sp.start_ptr[r + 1]].tolist()) for r in range(len(fixed))
     ]
     with pytest.raises(train.TrainError, match="no training target has a training start outside"):
-        trainer.ff_validation_episodes(745)
+        train.ff_validation_episodes(sp, 745, trainer.run.seed)
     sp.fixed_starts[:] = fixed
     seen = {}
 
