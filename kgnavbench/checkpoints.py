@@ -25,6 +25,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -118,35 +119,54 @@ def _checkpoint_frames(path: Path) -> int | None:
     return int(load_checkpoint(path)["frames"]) if path.is_file() else None
 
 
-def snapshot_evaluations(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device):
-    """(frames, evaluation) for each snapshot a run kept, in order of frames, each evaluated on the
-    table's fixed episodes (`episodes` per target) or read back from runs_dir/eval where it was."""
-    preset = spec.preset(preset_name)
-    options = row_options(preset, row)
-    for frames in snapshot_frames(run_dir):
-        config = eval_config(spec, preset, row, seed, options, run_dir, device, f"frames-{frames}", episodes)
-        yield frames, evaluate(config, runs_dir, progress=lambda _line: None)
+@dataclass(frozen=True)
+class SnapshotRun:
+    """One finished run of a preset's row and seed whose kept snapshots are evaluated: on the table's
+    fixed episodes (`episodes` per target), on `device`, kept in runs_dir/eval (they resume, as
+    every evaluation does)."""
+
+    spec: TableSpec
+    preset_name: str
+    row: Row
+    seed: int
+    run_dir: Path
+    runs_dir: Path
+    episodes: int = EPISODES_PER_TARGET
+    device: str = "cpu"
+
+    def evaluations(self):
+        """(frames, evaluation) for each snapshot the run kept, in order of frames, each evaluated or
+        read back from runs_dir/eval where it was."""
+        preset = self.spec.preset(self.preset_name)
+        options = row_options(preset, self.row)
+        for frames in snapshot_frames(self.run_dir):
+            config = eval_config(
+                self.spec,
+                preset,
+                self.row,
+                seed=self.seed,
+                options=options,
+                run_dir=self.run_dir,
+                device=self.device,
+                checkpoint=f"frames-{frames}",
+                episodes=self.episodes,
+            )
+            yield frames, evaluate(config, self.runs_dir, progress=lambda _line: None)
+
+    def episodes_by_frames(self) -> dict:
+        """{frames: that snapshot's episodes per cell} (the snapshots `evidence` evaluated are read,
+        not run again; one not yet evaluated is evaluated)."""
+        return {frames: cell_episodes(result.results) for frames, result in self.evaluations()}
 
 
-def run_lines(
-    spec: TableSpec,
-    preset_name: str,
-    row,
-    seed: int,
-    run_dir: Path,
-    runs_dir: Path,
-    episodes: int = EPISODES_PER_TARGET,
-    device: str = "cpu",
-    progress=print,
-    csv_path: Path | None = None,
-) -> list[dict]:
-    """One CSV line per snapshot of one finished run (evaluations are kept in runs_dir/eval and
-    resume, as every evaluation does); with `csv_path`, each line is merged into it as it comes."""
+def run_lines(snapshot_run: SnapshotRun, progress=print, csv_path: Path | None = None) -> list[dict]:
+    """One CSV line per snapshot of one finished run; with `csv_path`, each line is merged into it as
+    it comes."""
+    row, seed, run_dir = snapshot_run.row, snapshot_run.seed, snapshot_run.run_dir
     validation = validation_at(run_dir)
     best, last = _checkpoint_frames(run_dir / "best.pt"), _checkpoint_frames(run_dir / "last.pt")
     lines = []
-    evaluations = snapshot_evaluations(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device)
-    for frames, result in evaluations:
+    for frames, result in snapshot_run.evaluations():
         val_sr, val_episodes = validation.get(frames, (math.nan, 0))
         line = {
             "row": row.name,
@@ -244,7 +264,8 @@ def evidence(
                 continue
             finished = (run_dir / "finished.json").exists()
             out = csv_path if finished else None  # an unfinished run's lines wait for its end
-            run_lines(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device, progress, out)
+            snapshot_run = SnapshotRun(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device)
+            run_lines(snapshot_run, progress, out)
     return read_csv(csv_path)
 
 
@@ -262,13 +283,6 @@ MATCHED_FIELDS = (
     "high",
     "verdict",
 )
-
-
-def _snapshot_episodes(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device) -> dict:
-    """{frames: that snapshot's episodes per cell} for one finished run (its evaluations resume: the
-    snapshots `evidence` evaluated are read, not run again; one not yet evaluated is evaluated)."""
-    evaluations = snapshot_evaluations(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device)
-    return {frames: cell_episodes(result.results) for frames, result in evaluations}
 
 
 def matched(
@@ -303,7 +317,8 @@ def matched(
                 run_dir = run_with_snapshots(preset, row, seed, runs_dir, device, progress)
                 if run_dir is None:
                     continue
-                got = _snapshot_episodes(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device)
+                snapshot_run = SnapshotRun(spec, preset_name, row, seed, run_dir, runs_dir, episodes, device)
+                got = snapshot_run.episodes_by_frames()
                 progress(f"{name} seed {seed}: {len(got)} snapshots ({run_dir.name})")
                 snapshots[name].append((run_keep_every(run_dir), got))
         return snapshots[name]

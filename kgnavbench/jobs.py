@@ -72,7 +72,7 @@ class Sources:
     archive: Path | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Job:
     """One row of a preset for one seed: trained (or found, or resumed) and evaluated into `runs_dir`,
     on `device`, from `sources`; torch on `threads` threads in its process (0: torch's own number).
@@ -240,6 +240,7 @@ def eval_config(
     spec: TableSpec,
     preset: Preset,
     row: Row,
+    *,
     seed: int,
     options: dict,
     run_dir: Path | None,
@@ -301,7 +302,7 @@ def run_row(job: Job, progress=print) -> tuple:
             )
     if sources.train_only:
         return run_dir, None
-    config = eval_config(spec, preset, row, seed, options, run_dir, job.device)
+    config = eval_config(spec, preset, row, seed=seed, options=options, run_dir=run_dir, device=job.device)
     if not config.kitchens:  # every evaluation kitchen is an unseen one, where this row has no cells: "–"
         return run_dir, EvalRun(config, Path(job.runs_dir) / "eval")  # (no kitchens would mean all of them)
     return run_dir, evaluate(config, job.runs_dir, progress=progress, archive=sources.archive)
@@ -403,7 +404,11 @@ def run_job(
     progress(f"== [{number}/{len(jobs)}] {row.name} (seed {seed})")
     if sources.trained is None and trains(row):  # a run trained by other code is not this one
         announce_training(preset, [(row, seed)], Path(runs_dir), device, progress)
-    execute(Job(spec, preset, row, seed, Path(runs_dir), device, sources, preset.threads), progress)
+    job = Job(
+        spec=spec, preset=preset, row=row, seed=seed, runs_dir=Path(runs_dir), device=device, sources=sources,
+        threads=preset.threads,
+    )  # fmt: skip
+    execute(job, progress)
 
 
 # frames per second of one core, the paper preset's learned rows measured on the 2-core development

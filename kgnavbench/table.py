@@ -91,7 +91,19 @@ def run_table(
         announce_training(preset, [p for p in pairs if trains(p[0])], runs_dir, device, progress)
     # torch's threads in every job, training (the option) and evaluation alike: the spec's, so that a
     # job's numbers do not depend on how many run at once (threads change the sums' order)
-    jobs = [Job(spec, preset, row, seed, runs_dir, device, sources, preset.threads) for row, seed in pairs]
+    jobs = [
+        Job(
+            spec=spec,
+            preset=preset,
+            row=row,
+            seed=seed,
+            runs_dir=runs_dir,
+            device=device,
+            sources=sources,
+            threads=preset.threads,
+        )  # fmt: skip
+        for row, seed in pairs
+    ]
     if ray_address is None:
         outcomes = run_jobs(jobs, progress, workers)
     else:

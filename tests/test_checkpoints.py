@@ -243,11 +243,12 @@ def test_matched_pairs_the_seeds_snapshots_of_one_schedule_not_their_exact_frame
         checkpoints, "run_with_snapshots", lambda p, row, seed, *a, **k: Path(f"{row.name}/{seed}")
     )
 
-    def snapshots(spec, preset_name, row, seed, run_dir, *rest):
+    def snapshots(snapshot_run):
+        row, seed = snapshot_run.row, snapshot_run.seed
         return {f: f"{row.name} s{seed} at {f}" for f in at.get((row.name, seed), [])}
 
     calls = []
-    monkeypatch.setattr(checkpoints, "_snapshot_episodes", snapshots)
+    monkeypatch.setattr(checkpoints.SnapshotRun, "episodes_by_frames", snapshots)
     monkeypatch.setattr(checkpoints, "run_keep_every", lambda run_dir: 2_500_000)
     monkeypatch.setattr(
         checkpoints,

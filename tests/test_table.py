@@ -1111,7 +1111,9 @@ def test_a_row_without_unseen_kitchens_gets_no_cells_where_every_kitchen_is_unse
     preset = dataclasses.replace(spec.presets["smoke"], eval_kitchens=("FloorPlan27",))
     assert eval_kitchens(preset, rows["FF A3C"]) == ()
     row = dataclasses.replace(rows["FF A3C"], method="random_walk", options={})  # nothing to train
-    _, run = run_row(Job(spec, preset, row, 0, tmp_path), progress=lambda line: None)
+    _, run = run_row(
+        Job(spec=spec, preset=preset, row=row, seed=0, runs_dir=tmp_path), progress=lambda line: None
+    )
     assert run.results == [] and not (tmp_path / "eval").exists()
 
 
