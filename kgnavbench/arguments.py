@@ -15,8 +15,9 @@ from .errors import KgnavbenchError
 from .evaluate import SPLITS
 from .kitchens import KITCHEN_NAMES, check_name
 from .plugins import MAX_SEED
+from .table_spec import load_spec
 from .tasks import EPISODES_PER_TARGET
-from .walk import MAX_SIZE, MIN_SIZE, view_size
+from .walk import MAX_SIZE, MIN_SIZE
 from .weights import checkpoint_name
 from .world import ACTIONS
 
@@ -67,6 +68,11 @@ def integer_in(text: str, low: int, high: int) -> int:
     if not low <= n <= high:
         raise argparse.ArgumentTypeError(f"{n} is not in {low}..{high}")
     return n
+
+
+def view_size(text: str) -> int:
+    """`walk --size`: pixels, MIN_SIZE..MAX_SIZE."""
+    return integer_in(text, MIN_SIZE, MAX_SIZE)
 
 
 def positive(text: str) -> int:
@@ -144,6 +150,21 @@ def runs_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=Path, default=Path("runs"), help="runs directory (default runs/)")
 
 
+def preset_options(p: argparse.ArgumentParser, default: str, what: str) -> None:
+    """--preset (one of the spec's, listed from the default spec where it reads), --spec and --runs."""
+    try:
+        names = " | ".join(load_spec().presets)
+    except (KgnavbenchError, OSError):  # a damaged default spec is reported when a command reads it
+        names = "a preset of the spec"
+    p.add_argument("--preset", default=default, help=f"{what}: {names} (default {default})")
+    p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
+    runs_option(p)
+
+
+def seed_option(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--seed", type=seed, default=0, help=f"seed of {what} (default 0)")
+
+
 def device_option(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--device",
@@ -188,7 +209,7 @@ def walk_arguments(sub) -> argparse.ArgumentParser:
         metavar="X,Z,HEADING,PITCH",
         help="start pose in metres and degrees (default: the world's initial pose)",
     )
-    p.add_argument("--seed", type=seed, default=0, help="seed of the random actions (default 0)")
+    seed_option(p, "the random actions")
     p.add_argument(
         "--placement-seed",
         type=int,
@@ -271,7 +292,7 @@ def eval_arguments(sub) -> argparse.ArgumentParser:
         help=f"the first N fixed episodes of every target (default {EPISODES_PER_TARGET})",
     )
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a plugin option (repeatable)")
-    p.add_argument("--seed", type=seed, default=0, help="seed of the policy (default 0)")
+    seed_option(p, "the policy")
     runs_option(p)
     p.add_argument(
         "--run",
@@ -351,7 +372,7 @@ def train_arguments(sub) -> argparse.ArgumentParser:
         type=frames,
         help="frames (agent steps) to train (default: the preset's, else 10,000,000)",
     )
-    p.add_argument("--seed", type=seed, default=0, help="seed (default 0)")
+    seed_option(p, "the run: its weights, agents and episodes")
     p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")
     runs_option(p)
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="record the training curves with rerun")
@@ -369,9 +390,7 @@ def figures_arguments(sub) -> argparse.ArgumentParser:
         "`kgnavbench table --preset PRESET` (missing runs are trained and evaluated first; with "
         "--trained DIR, the trained runs come from DIR and a missing one is an error, never trained).",
     )
-    p.add_argument("--preset", default="quick", help="the table preset whose runs to draw (default quick)")
-    p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
-    runs_option(p)
+    preset_options(p, "quick", "the table preset whose runs to draw")
     p.add_argument(
         "--trained",
         type=Path,
@@ -436,9 +455,7 @@ def checkpoints_arguments(sub) -> argparse.ArgumentParser:
         "checkpoint rule can be replayed without training. Run it when a run finishes: its snapshots "
         "are not shipped.",
     )
-    p.add_argument("--preset", default="paper", help="the spec's preset whose runs to read (default paper)")
-    p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
-    runs_option(p)
+    preset_options(p, "paper", "the spec's preset whose runs to read")
     p.add_argument("--episodes", type=positive, default=5, help="episodes per target (default 5)")
     p.add_argument("--row", action="append", metavar="NAME", help="only this row (repeatable)")
     p.add_argument(
@@ -486,9 +503,7 @@ def table_arguments(sub) -> argparse.ArgumentParser:
         "it on the fixed episodes, then write table1.md/.csv/.tex and print the table. Killed and "
         "re-run, it continues where it stopped.",
     )
-    p.add_argument("--preset", default="quick", help="smoke | quick (default) | paper, as in the spec")
-    p.add_argument("--spec", type=Path, help="table spec (default tables/table1.toml)")
-    runs_option(p)
+    preset_options(p, "quick", "the spec's preset")
     p.add_argument("--out", type=Path, help="where the tables go (default: the spec's folder, tables/)")
     p.add_argument(
         "--workers",
@@ -579,7 +594,7 @@ def encoder_arguments(sub) -> argparse.ArgumentParser:
     q.add_argument("--epochs", type=positive, default=8)
     q.add_argument("--samples-per-epoch", type=positive, default=16_000)
     q.add_argument("--shift", type=int, default=4, help="random shift of the views in pixels (0: none)")
-    q.add_argument("--seed", type=seed, default=0)
+    seed_option(q, "the encoder's training")
     q.add_argument("--out", type=Path, help="where the weights go (default: the committed encoder file)")
     q = actions.add_parser("features", help="encode every state's view of the kitchens, cached")
     q.add_argument("kitchens", nargs="*", metavar="NAME", help="default: all 30")

@@ -49,7 +49,6 @@ from .plugins import PluginError, load_plugin, parse_options, plugin_sources
 from .tasks import load_tasks
 from .walk import walk
 from .weights import selected_checkpoint
-from .world import WorldError  # its bytes are the state graphs' fingerprint: no base class (errors.py)
 
 METHODS_IMPORT_TIMEOUT = 20.0  # seconds `methods` gives each plugin file to import
 PROG = "kgnavbench"
@@ -636,7 +635,7 @@ def _main(argv: list[str]) -> int:
             if isinstance(value, Path):
                 setattr(args, name, value.absolute())
         return args.func(args)
-    except (KgnavbenchError, WorldError) as e:  # every stage's: one line and exit status 2, never a traceback
+    except KgnavbenchError as e:  # every stage's: one line and exit status 2, never a traceback
         print(f"{PROG}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # Ctrl-C: saved results stay; the same command resumes

@@ -2,10 +2,7 @@
 or option, a corrupt checkpoint or table spec, a run in use) is a KgnavbenchError, each stage's own
 class below it (EvalError, TableError, ...); the command line catches it once (`cli.main`) and prints
 one `kgnavbench: error: ...` line with exit status 2, never a traceback. The stages' classes are also
-ValueErrors (ClaimError a RuntimeError), as before there was a base. One exception: world.py's
-WorldError stays a plain ValueError, caught beside the base, because world.py's bytes are part of
-every state graph's fingerprint (graph.graph_fingerprint): editing it would rebuild every cached graph
-and change the committed task file. A helper without a stage number.
+ValueErrors (ClaimError a RuntimeError), as before there was a base. A helper without a stage number.
 """
 
 

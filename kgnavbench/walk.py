@@ -62,16 +62,6 @@ def parse_start(text: str, kitchen: Kitchen) -> Pose:
     return parse_pose(text, kitchen)
 
 
-def view_size(text: str) -> int:
-    try:
-        size = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not MIN_SIZE <= size <= MAX_SIZE:
-        raise argparse.ArgumentTypeError(f"{size} is out of range ({MIN_SIZE} .. {MAX_SIZE} pixels)")
-    return size
-
-
 def pose_dict(pose: Pose) -> dict:
     return {"x": pose.x, "z": pose.z, "heading": pose.heading, "pitch": pose.pitch}
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 
 import pymunk
 
+from .errors import KgnavbenchError
 from .kitchens import Kitchen, KitchenError, KitchenObject, load_kitchen
 
 ACTIONS = (
@@ -51,7 +52,7 @@ OBJECT, WALL, NAV, DOOR, AGENT = 1, 2, 4, 8, 16
 SOLID = OBJECT | WALL | DOOR  # what rays see
 
 
-class WorldError(ValueError):
+class WorldError(KgnavbenchError, ValueError):
     """Bad world input: unknown action, pose or object."""
 
 
@@ -244,10 +245,11 @@ class World:
         return self.objects[self.index(object_id)]
 
     def index(self, object_id: str) -> int:
-        for i, o in enumerate(self.objects):
-            if o.id == object_id:
-                return i
-        raise WorldError(f"kitchen {self.kitchen.name} has no object {object_id!r}")
+        """The object's index: the kitchen's (a placement moves objects, never reorders them)."""
+        try:
+            return self.kitchen.index(object_id)
+        except KitchenError as e:
+            raise WorldError(str(e)) from None
 
     def is_hidden(self, index: int) -> bool:
         """Inside a closed openable receptacle (given which one is open now)."""

@@ -1,6 +1,7 @@
 """The state graph, BFS distances and targets (tasks stage)."""
 
 import gzip
+import hashlib
 import json
 import random
 import shutil
@@ -337,6 +338,49 @@ def test_floorplan1_record_regenerates_identically(graph, task_file):
     assert record["targets"] == committed["targets"]
     assert record["dropped"] == committed["dropped"]
     assert record == committed
+
+
+# What FloorPlan1's state graph holds at GRAPH_VERSION, hashed (states, transitions, visibility, every
+# 50th view). The graph's fingerprint, which names the cached graphs and stands in the task file, comes
+# from GRAPH_VERSION, the kitchen file and graph.graph_parameters, no longer from the code's bytes: so
+# a change of the code that changes what a graph holds must bump GRAPH_VERSION, and this test says when.
+GOLDEN_GRAPH = (2, "eb89153cd3118584c5ba4c99537c331c1e2fbddfd4e59979aea8ec6498a8b878")
+
+
+def graph_content_sha256(g) -> str:
+    h = hashlib.sha256()
+    for array in (np.array(g.cells, np.int64), g.cell, g.heading, g.pitch, g.opened, g.next_state, g.ok):
+        h.update(np.ascontiguousarray(array).astype(np.int64).tobytes())
+    for v in g.visible:
+        h.update(repr((v.visible, v.pixels, v.open_target)).encode())
+    h.update(np.ascontiguousarray(g.views[::50]).tobytes())
+    return h.hexdigest()
+
+
+def test_a_change_of_what_a_graph_holds_bumps_graph_version(graph):
+    """FloorPlan1's graph, built by this code in the test's fresh cache, is the one recorded for this
+    GRAPH_VERSION; the fingerprint keeps today's value for today's graphs (no saved evaluation lost)."""
+    got = (graph_stage.GRAPH_VERSION, graph_content_sha256(graph))
+    assert got == GOLDEN_GRAPH, (
+        "what FloorPlan1's state graph holds has changed: bump graph.GRAPH_VERSION and record "
+        f"GOLDEN_GRAPH = {(graph_stage.GRAPH_VERSION + 1, got[1])}"
+        if got[0] == GOLDEN_GRAPH[0]
+        else f"GRAPH_VERSION was bumped: record GOLDEN_GRAPH = {got}"
+    )
+    assert graph_stage.graph_fingerprint("FloorPlan1") == "532a5d1efb367775"  # the recorded one
+    # an input that decides the graph gives another fingerprint
+    graph_stage.graph_fingerprint.cache_clear()
+    try:
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(graph_stage, "GRAPH_VERSION", graph_stage.GRAPH_VERSION + 1)
+            assert graph_stage.graph_fingerprint("FloorPlan1") != "532a5d1efb367775"
+        graph_stage.graph_fingerprint.cache_clear()
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(graph_stage.render_module, "MIN_VISIBLE_PIXELS", 7)
+            assert graph_stage.graph_fingerprint("FloorPlan1") != "532a5d1efb367775"
+    finally:
+        graph_stage.graph_fingerprint.cache_clear()
+    assert graph_stage.graph_fingerprint("FloorPlan1") == "532a5d1efb367775"
 
 
 def test_the_papers_split_140_seen_targets_all_actionable_first(task_file):
