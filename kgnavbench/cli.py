@@ -399,8 +399,7 @@ def cmd_table(args: argparse.Namespace) -> int:
                 f"--verdicts-only rewrites written tables and runs nothing: not with {', '.join(given)}"
             )
         arguments.writable_folder(args.out or spec.path.parent, "--out")
-        for path in reverdict_tables(spec, args.preset, args.out or spec.path.parent):
-            print(f"wrote {path}")
+        print(reverdict_tables(spec, args.preset, args.out or spec.path.parent).summary())
         return 0
     if args.ray and args.workers is not None:  # before connecting: the cluster's CPUs decide there
         raise UsageError(
@@ -472,7 +471,7 @@ def cmd_table(args: argparse.Namespace) -> int:
         paths += write_paired(result, base, differences, args.out or spec.path.parent)
         print()
         print(to_paired_markdown(result, base, differences).rstrip())
-    print(f"wrote {', '.join(str(p) for p in paths)} in {result.seconds / 60:.1f} min")
+    print(f"{paths.summary()}, in {result.seconds / 60:.1f} min")
     return 0
 
 

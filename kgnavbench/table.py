@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import io
+import re
 import time
 from pathlib import Path
 
@@ -56,6 +57,7 @@ from .table_spec import (
     TableSpec,
 )
 from .table_statistics import ComparisonStatistics, PairedDifference, RowResult, TableResult, paper_value
+from .zoo import other_code_runs
 
 
 def run_table(
@@ -108,6 +110,8 @@ def run_table(
         outcomes = run_jobs(jobs, progress, workers)
     else:
         outcomes = run_jobs_on_ray(jobs, ray_address, progress, ray_node_ip)
+    if sources.trained is not None:
+        other_code_runs([outcome.train_run for outcome in outcomes if outcome.train_run], progress)
     per_row: dict[str, RowResult] = {}
     for job, outcome in zip(jobs, outcomes, strict=True):
         result = per_row.setdefault(job.row.name, RowResult(job.row, [], [], [], 0.0))
@@ -350,7 +354,7 @@ def _ablation_csv(header: str, statistics: list[ComparisonStatistics]) -> str:
     return out.getvalue()
 
 
-def reverdict_tables(spec: TableSpec, preset_name: str, out_dir: Path | str) -> list[Path]:
+def reverdict_tables(spec: TableSpec, preset_name: str, out_dir: Path | str) -> Written:
     """The verdicts of a preset's written tables recomputed under the spec's rules and margin, from the
     intervals its ablation CSV holds (6 significant digits), nothing trained or evaluated: the CSV's
     verdicts and header, and the ablation check of its .md and .tex where they exist (their main table
@@ -485,7 +489,7 @@ def table_stem(preset_name: str) -> str:
     return "table1" if preset_name == "quick" else f"table1-{preset_name}"
 
 
-def write_table(result: TableResult, out_dir: Path | str) -> list[Path]:
+def write_table(result: TableResult, out_dir: Path | str) -> Written:
     """tables/table1.{md,csv,tex} and table1-ablation.csv for the quick preset, table1-<preset>.* and
     table1-<preset>-ablation.csv for the others; `-partial` after the preset's name for a table without
     some of its rows (`--row`), so that it never overwrites the whole one (a later partial table of the
@@ -502,17 +506,54 @@ def write_table(result: TableResult, out_dir: Path | str) -> list[Path]:
     )
 
 
-def _write_files(out_dir: Path | str, files: tuple[tuple[str, str], ...]) -> list[Path]:
-    """Each (name, text) atomically into OUT_DIR/name; a failure is one TableError naming the file."""
-    paths = []
+class Written(list):
+    """The paths of a table's files (a list), and `kept`: those left as they were, since their new
+    text differs from the old only in the caption's provenance (git revision, wall time): rewriting a
+    committed table from the same archive leaves the tree clean."""
+
+    def __init__(self, paths=(), kept=()):
+        super().__init__(paths)
+        self.kept = list(kept)
+
+    def __iadd__(self, other):
+        self.extend(other)
+        self.kept += getattr(other, "kept", [])
+        return self
+
+    def summary(self) -> str:
+        """'wrote A, B' with the files kept named apart."""
+        wrote = [str(p) for p in self if p not in self.kept]
+        parts = [f"wrote {', '.join(wrote)}"] if wrote else []
+        if self.kept:
+            parts.append(
+                f"kept {', '.join(map(str, self.kept))} (the same table; only the caption's git revision "
+                "and wall time would change)"
+            )
+        return "; ".join(parts)
+
+
+PROVENANCE = re.compile(r"Git [0-9A-Za-z-]+|wall time [0-9.]+ min")
+
+
+def _write_files(out_dir: Path | str, files: tuple[tuple[str, str], ...]) -> Written:
+    """Each (name, text) atomically into OUT_DIR/name, unless the file there says the same but for
+    its provenance; a failure is one TableError naming the file."""
+    written = Written()
     for name, text in files:
         path = Path(out_dir) / name
         try:
-            atomic_write(path, text)
-        except OSError as e:
-            raise TableError(f"cannot write {path}: {e.strerror or e}") from e
-        paths.append(path)
-    return paths
+            old = path.read_text() if path.is_file() else None
+        except (OSError, UnicodeDecodeError):
+            old = None
+        if old is not None and old != text and PROVENANCE.sub("", old) == PROVENANCE.sub("", text):
+            written.kept.append(path)
+        else:
+            try:
+                atomic_write(path, text)
+            except OSError as e:
+                raise TableError(f"cannot write {path}: {e.strerror or e}") from e
+        written.append(path)
+    return written
 
 
 def paired_intro(result: TableResult, base: TableResult) -> str:
@@ -579,7 +620,7 @@ def to_paired_csv(result: TableResult, base: TableResult, diffs: list[PairedDiff
 
 def write_paired(
     result: TableResult, base: TableResult, diffs: list[PairedDifference], out_dir: Path | str
-) -> list[Path]:
+) -> Written:
     """table1-<preset>-against-<base>.md and .csv (`-partial` after the preset's name as `write_table`)."""
     stem = f"table1-{result.preset.name}{'-partial' if result.left_out else ''}-against-{base.preset.name}"
     return _write_files(

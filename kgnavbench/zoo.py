@@ -25,6 +25,7 @@ from .runs import (
     checkpoint_differences,
     load_checkpoint,
     save_checkpoint,
+    training_code_sha256,
 )
 from .table_spec import (
     TableError,
@@ -95,12 +96,28 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfin
     run_dir, config = ours[0] if len(matches) > 1 else matches[0]
     if not (run_dir / "finished.json").exists() and not unfinished:
         raise TableError(f"row {row_name!r} (seed {record['seed']}): {run_dir} is not finished")
-    if config.get("training_code_sha256") != record["training_code_sha256"]:
-        progress(
-            f"{run_dir}: trained by the code of revision {_revision(config)}, not this checkout's training "
-            "code; used as shipped"
-        )
     return run_dir
+
+
+def other_code_runs(run_dirs, progress=print) -> None:
+    """One line naming the runs among `run_dirs` trained by other training code than this checkout's,
+    per revision (a table of the zoo's runs says it once, not once per run): they are used as shipped."""
+    ours = training_code_sha256()
+    revisions: dict[str, list[str]] = {}
+    for run_dir in run_dirs:
+        try:
+            config = json.loads((Path(run_dir) / "config.json").read_text())
+        except (OSError, ValueError):
+            continue  # find_trained read it moments ago; a run removed since has nothing to say
+        if config.get("training_code_sha256") != ours:
+            revisions.setdefault(_revision(config), []).append(Path(run_dir).name)
+    if revisions:
+        counts = ", ".join(f"{revision} ({len(names)})" for revision, names in sorted(revisions.items()))
+        total = sum(map(len, revisions.values()))
+        progress(
+            f"{total} runs were trained by other training code than this checkout's, by revision: "
+            f"{counts}; used as shipped"
+        )
 
 
 def _revision(config: dict) -> str:
