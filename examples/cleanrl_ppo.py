@@ -37,7 +37,9 @@ import kgnavbench
 
 
 def parse_args() -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--steps", type=int, default=1_400_000, help="environment steps (all sub-envs)")
     p.add_argument("--envs", type=int, default=64, help="sub-envs of the vector env")
     p.add_argument("--rollout", type=int, default=128, help="steps per sub-env per update")

@@ -32,7 +32,9 @@ import kgnavbench
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--steps", type=int, default=600_000, help="environment steps to train")
     parser.add_argument("--envs", type=int, default=16, help="copies of the env")
     parser.add_argument("--seed", type=int, default=0)

@@ -353,6 +353,12 @@ def load_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = Non
         return None
 
 
+def is_cached(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = None) -> bool:
+    """Whether the kitchen's state graph and views are in the cache (a first use builds them: seconds
+    to a minute)."""
+    return all(path.is_file() for path in _cache_paths(kitchen, view_size, root or cache_dir()))
+
+
 def state_graph(kitchen: str, view_size: int = VIEW_SIZE, root: Path | None = None) -> StateGraph:
     """The state graph of a kitchen's start scene, from the cache or built (and cached) now."""
     check_name(kitchen)
