@@ -61,7 +61,7 @@ from .metrics import (
     summary_as_json,
 )
 from .plugins import MAX_SEED, UNWEIGHTED_OPTIONS, Plugin, PluginError, PolicySpec, guarded, load_plugin
-from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks
+from .tasks import EPISODES_PER_TARGET, TASKS_FILE, KitchenTasks, load_task_file, load_tasks, outcome
 from .weights import (
     CHECKPOINT_MEANING,
     EvalError,
@@ -401,7 +401,7 @@ def scored_visible(results: list[EpisodeResult]) -> list[EpisodeResult]:
             target = next(t for t in kitchen.targets if t.object_id == r.target)
             distances[r.kitchen, r.target] = kitchen.distances(target, "visible")
         shortest = int(distances[r.kitchen, r.target][r.start])
-        success = r.stopped and r.last_view_shows_target
+        success, _ = outcome("visible", r.stopped, r.last_view_shows_target, stop_ends=True)
         out.append(dataclasses.replace(r, success=bool(success), shortest_path=shortest))
     return out
 

@@ -1,5 +1,6 @@
 """The PettingZoo environment (env stage): API, observations, rewards, success rules, episodes."""
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -415,6 +416,34 @@ def test_success_is_decided_in_one_place_for_every_rule():
         outcome("arrival", stop, goal, True)
     with pytest.raises(TaskError, match="unknown success rule"):
         outcome("nearby", stop, goal, True)
+
+
+def test_the_envs_step_and_the_rescoring_ask_the_one_success_function(make_env, monkeypatch):
+    """The env's step and the visible rule's re-scoring of saved episodes both decide success through
+    tasks.outcome (the same function object, called by each)."""
+    from kgnavbench import env as env_stage
+    from kgnavbench import evaluate, tasks
+    from kgnavbench.metrics import EpisodeResult
+
+    assert env_stage.outcome is tasks.outcome is evaluate.outcome
+    calls = []
+
+    def spy(rule, stop, on_goal, stop_ends):
+        calls.append(rule)
+        return tasks.outcome(rule, stop, on_goal, stop_ends)
+
+    monkeypatch.setattr(env_stage, "outcome", spy)
+    monkeypatch.setattr(evaluate, "outcome", spy)
+    env = make_env()
+    env.reset(options={"episodes": [episode(APPLE, 0)]})
+    run(env, [9])
+    assert calls == ["destination"]
+    fields = {f.name: None for f in dataclasses.fields(EpisodeResult)}
+    start = tasks.load_tasks("FloorPlan1").targets[0]
+    result = EpisodeResult(**{**fields, "kitchen": "FloorPlan1", "target": start.object_id, "start": 0,
+                              "stopped": True, "last_view_shows_target": True, "success": False})  # fmt: skip
+    [scored] = evaluate.scored_visible([result])
+    assert calls == ["destination", "visible"] and scored.success
 
 
 def test_collisions_count_failed_moves_only(make_env, graph):
