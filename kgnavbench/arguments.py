@@ -599,3 +599,141 @@ def encoder_arguments(sub) -> argparse.ArgumentParser:
     q = actions.add_parser("features", help="encode every state's view of the kitchens, cached")
     q.add_argument("kitchens", nargs="*", metavar="NAME", help="default: all 30")
     return p
+
+
+# ------------------------------------------------------------------------------------------------
+# One check per command: every inconsistency of its parsed options, reported at once (`verify`), so
+# that the commands only run. What needs more than the options (a spec's presets and rows, a plugin's
+# options) is checked where it is read.
+
+
+def _writable(problems: list[str], check, path: Path, what: str) -> None:
+    try:
+        check(path, what)
+    except UsageError as e:
+        problems.append(str(e))
+
+
+def _creatable_folder(problems: list[str], path: Path, what: str) -> None:
+    """The folder can be made (or written, where it is): checked without making it, so that a command
+    refused for another reason leaves nothing behind."""
+    existing = next((p for p in (path, *path.parents) if p.exists()), None)
+    if existing is None or not existing.is_dir():
+        problems.append(f"{what} {str(path)!r}: cannot write there ({existing} is not a folder)")
+    elif not os.access(existing, os.W_OK | os.X_OK):
+        problems.append(f"{what} {str(path)!r}: cannot write there (no permission)")
+
+
+def _recording(problems: list[str], args: argparse.Namespace) -> None:
+    if args.record is not None:
+        if not str(args.record).endswith(".rrd"):
+            problems.append(f"--record {args.record}: a recording file must end in .rrd")
+        else:
+            _writable(problems, writable_file, args.record, "--record")
+
+
+def eval_problems(args: argparse.Namespace) -> list[str]:
+    problems: list[str] = []
+    if args.checkpoint != "best" and not args.run:
+        problems.append("--checkpoint chooses among a training run's checkpoints: give --run DIR too")
+    _recording(problems, args)
+    if args.video is not None:
+        if args.video.suffix.lower() != ".mp4":
+            problems.append(f"--video {args.video}: a video file must end in .mp4")
+        else:
+            _writable(problems, writable_file, args.video, "--video")
+    _creatable_folder(problems, args.runs, "--runs")
+    return problems
+
+
+def train_problems(args: argparse.Namespace) -> list[str]:
+    problems: list[str] = []
+    if args.spec is not None and args.preset is None:
+        problems.append("--spec names where --preset comes from: give --preset too")
+    _recording(problems, args)
+    _creatable_folder(problems, args.runs, "--runs")
+    return problems
+
+
+def figures_problems(args: argparse.Namespace) -> list[str]:
+    if args.trained is not None and not args.trained.is_dir():
+        return [f"--trained {args.trained}: no such folder"]
+    return []
+
+
+def table_problems(args: argparse.Namespace) -> list[str]:
+    problems: list[str] = []
+    if args.verdicts_only:
+        flags = {
+            "--jobs": args.jobs,
+            "--job": args.job is not None,
+            "--train-only": args.train_only,
+            "--against": args.against is not None,
+            "--row": bool(args.row),
+            "--trained": args.trained is not None,
+            "--archive": args.archive is not None,
+            "--ray": bool(args.ray),
+        }
+        given = [flag for flag, on in flags.items() if on]
+        if given:
+            problems.append(
+                f"--verdicts-only rewrites written tables and runs nothing: not with {', '.join(given)}"
+            )
+        return problems
+    if args.ray and args.workers is not None:  # before connecting: the cluster's CPUs decide there
+        problems.append(
+            "--workers sets the jobs run at once on this machine; with --ray the cluster's CPUs do"
+        )
+    assembles = not args.jobs and args.job is None and not args.train_only
+    if args.against is not None and not assembles:
+        problems.append(
+            "--against differences two assembled tables; --jobs, --job and --train-only assemble none"
+        )
+    if args.row and not assembles:
+        problems.append(
+            "--row picks the rows of a table to assemble; --jobs, --job and --train-only assemble none"
+        )
+    if args.archive is not None and args.train_only:
+        problems.append("--archive keeps evaluations; --train-only runs none: one or the other")
+    if args.archive is not None and not args.archive.is_dir():  # a typo would evaluate everything again
+        problems.append(f"--archive {args.archive}: no such folder (create it to start an archive)")
+    if args.trained is not None and not args.trained.is_dir():
+        problems.append(f"--trained {args.trained}: no such folder")
+    if args.trained is not None and args.train_only:
+        problems.append("--trained takes runs already trained; --train-only trains them: one or the other")
+    if args.ray_node_ip and not args.ray:
+        problems.append("--ray-node-ip is this machine's address on a Ray cluster: give --ray too")
+    return problems
+
+
+def checkpoints_problems(args: argparse.Namespace) -> list[str]:
+    problems: list[str] = []
+    if not args.runs.is_dir():  # (a typo would read as "no run trained yet")
+        problems.append(f"--runs {args.runs}: no such folder")
+    if args.figure is not None:  # refused before hours of evaluation, not after the CSV is written
+        import cv2
+
+        if not cv2.haveImageWriter(str(args.figure)):
+            problems.append(f"--figure {args.figure}: OpenCV writes no image of that extension (try .png)")
+        else:
+            _creatable_folder(problems, args.figure.parent, "--figure")
+    if args.matched and (args.seed or args.unfinished):
+        problems.append("--matched compares every finished seed of two rows: not with --seed or --unfinished")
+    return problems
+
+
+PROBLEMS = {
+    "eval": eval_problems,
+    "train": train_problems,
+    "figures": figures_problems,
+    "table": table_problems,
+    "checkpoints": checkpoints_problems,
+}
+
+
+def verify(args: argparse.Namespace) -> None:
+    """Every inconsistency of a command's options in one UsageError (one `kgnavbench: error:` line,
+    the problems separated by '; '), before the command runs."""
+    problems = PROBLEMS.get(args.command, lambda _args: [])(args)
+    if problems:
+        raise UsageError("; ".join(problems))

@@ -205,17 +205,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         checkpoint=args.checkpoint,
         device=arguments.device_name(args.device),
     )
-    if args.checkpoint != "best" and not args.run:
-        raise UsageError("--checkpoint chooses among a training run's checkpoints: give --run DIR too")
     progress = (lambda line: print(line, file=sys.stderr, flush=True)) if args.json else print
-    if args.record is not None and not str(args.record).endswith(".rrd"):
-        raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
-    if args.video is not None and args.video.suffix.lower() != ".mp4":
-        raise UsageError(f"--video {args.video}: a video file must end in .mp4")
-    if args.record is not None:
-        arguments.writable_file(args.record, "--record")
-    if args.video is not None:
-        arguments.writable_file(args.video, "--video")
     arguments.writable_folder(args.runs, "--runs")
     # with --json, stdout is the JSON alone: whatever a plugin prints goes to stderr
     with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
@@ -278,12 +268,6 @@ def cmd_train(args: argparse.Namespace) -> int:
         options = {**preset.options, **options}
         frames = args.frames if args.frames is not None else preset.frames
         kitchens = kitchens or preset.train_kitchens
-    elif args.spec is not None:
-        raise UsageError("--spec names where --preset comes from: give --preset too")
-    if args.record is not None:
-        if not str(args.record).endswith(".rrd"):
-            raise UsageError(f"--record {args.record}: a recording file must end in .rrd")
-        arguments.writable_file(args.record, "--record")
     arguments.writable_folder(args.runs, "--runs")
     directory = train_method(
         args.method,
@@ -311,8 +295,6 @@ def cmd_figures(args: argparse.Namespace) -> int:
     from .figures import figures_of_table
     from .table_spec import SPEC_FILE, load_spec
 
-    if args.trained is not None and not args.trained.is_dir():
-        raise UsageError(f"--trained {args.trained}: no such folder")
     device = arguments.device_name(args.device)
     rows_named = tuple(args.row or ())
     spec = load_spec(args.spec or SPEC_FILE)
@@ -383,28 +365,9 @@ def cmd_table(args: argparse.Namespace) -> int:
     if args.verdicts_only:
         from .table import reverdict_tables
 
-        flags = {
-            "--jobs": args.jobs,
-            "--job": args.job is not None,
-            "--train-only": args.train_only,
-            "--against": args.against is not None,
-            "--row": bool(args.row),
-            "--trained": args.trained is not None,
-            "--archive": args.archive is not None,
-            "--ray": bool(args.ray),
-        }
-        given = [flag for flag, on in flags.items() if on]
-        if given:
-            raise UsageError(
-                f"--verdicts-only rewrites written tables and runs nothing: not with {', '.join(given)}"
-            )
         arguments.writable_folder(args.out or spec.path.parent, "--out")
         print(reverdict_tables(spec, args.preset, args.out or spec.path.parent).summary())
         return 0
-    if args.ray and args.workers is not None:  # before connecting: the cluster's CPUs decide there
-        raise UsageError(
-            "--workers sets the jobs run at once on this machine; with --ray the cluster's CPUs do"
-        )
     args.workers = args.workers or os.cpu_count() or 1
     device = arguments.device_name(args.device)
     assembles = not args.jobs and args.job is None and not args.train_only
@@ -419,24 +382,6 @@ def cmd_table(args: argparse.Namespace) -> int:
         for row in ours:
             if row not in theirs:
                 print(f"--against: preset {args.against!r} has no row {row.name!r}: not differenced")
-        if not assembles:
-            raise UsageError(
-                "--against differences two assembled tables; --jobs, --job and --train-only assemble none"
-            )
-    if args.row and not assembles:
-        raise UsageError(
-            "--row picks the rows of a table to assemble; --jobs, --job and --train-only assemble none"
-        )
-    if args.archive is not None and args.train_only:
-        raise UsageError("--archive keeps evaluations; --train-only runs none: one or the other")
-    if args.archive is not None and not args.archive.is_dir():  # a typo would evaluate everything again
-        raise UsageError(f"--archive {args.archive}: no such folder (create it to start an archive)")
-    if args.trained is not None and not args.trained.is_dir():
-        raise UsageError(f"--trained {args.trained}: no such folder")
-    if args.trained is not None and args.train_only:
-        raise UsageError("--trained takes runs already trained; --train-only trains them: one or the other")
-    if args.ray_node_ip and not args.ray:
-        raise UsageError("--ray-node-ip is this machine's address on a Ray cluster: give --ray too")
     sources = Sources(args.trained, args.train_only, args.archive)
     if args.jobs:  # each command carries --trained, --train-only and --archive
         print("\n".join(job_commands(spec, args.preset, args.runs, sources)))
@@ -524,19 +469,7 @@ def cmd_checkpoints(args: argparse.Namespace) -> int:
     device = arguments.device_name(args.device)
     csv_path = args.csv or spec.path.parent / f"checkpoints-{args.preset}.csv"
     arguments.writable_folder(csv_path.parent, "--csv")
-    if not args.runs.is_dir():  # (a typo would read as "no run trained yet")
-        raise UsageError(f"--runs {args.runs}: no such folder")
-    if args.figure is not None:  # refused before hours of evaluation, not after the CSV is written
-        import cv2
-
-        if not cv2.haveImageWriter(str(args.figure)):
-            raise UsageError(f"--figure {args.figure}: OpenCV writes no image of that extension (try .png)")
-        arguments.writable_folder(args.figure.parent, "--figure")
     rows = tuple(args.row or ())
-    if args.matched and (args.seed or args.unfinished):
-        raise UsageError(
-            "--matched compares every finished seed of two rows: not with --seed or --unfinished"
-        )
     lines = evidence(
         spec, args.preset, args.runs, csv_path, args.episodes, rows, device,
         lambda line: print(line, flush=True), tuple(args.seed or ()), args.unfinished,
@@ -548,6 +481,7 @@ def cmd_checkpoints(args: argparse.Namespace) -> int:
         )
     print(f"wrote {csv_path}: {len(lines)} snapshots of {len({x['run'] for x in lines})} runs")
     if args.figure and lines:
+        arguments.writable_folder(args.figure.parent, "--figure")
         order, keep_every = [row.name for row in spec.rows], preset_keep_every(spec, args.preset)
         print(f"wrote {figure(lines, args.figure, order, keep_every)}")
     if args.matched:
@@ -633,6 +567,7 @@ def _main(argv: list[str]) -> int:
         for name, value in vars(args).items():
             if isinstance(value, Path):
                 setattr(args, name, value.absolute())
+        arguments.verify(args)  # every inconsistency of the options at once; the command then only runs
         return args.func(args)
     except KgnavbenchError as e:  # every stage's: one line and exit status 2, never a traceback
         print(f"{PROG}: error: {e}", file=sys.stderr)

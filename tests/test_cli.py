@@ -368,3 +368,35 @@ def test_eval_errors_name_the_problem(capsys, tmp_path, argv, message):
     assert code == 2
     assert err.startswith("kgnavbench: error: ") and message in err
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_every_inconsistency_of_a_commands_options_is_reported_at_once(capsys, tmp_path):
+    """arguments.verify: one check per command gathers every problem of its options into one
+    `kgnavbench: error:` line, before anything runs."""
+    argv = ["table", "--preset", "smoke", "--runs", str(tmp_path / "runs"), "--train-only"]
+    argv += ["--archive", str(tmp_path / "missing"), "--ray-node-ip", "127.0.0.2", "--row", "IL"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("kgnavbench: error: ")
+    for said in (
+        "--row picks the rows of a table to assemble",
+        "--archive keeps evaluations; --train-only runs none",
+        "--archive " + str(tmp_path / "missing") + ": no such folder",
+        "--ray-node-ip is this machine's address",
+    ):
+        assert said in err, said
+    assert not (tmp_path / "runs").exists()  # nothing ran
+    argv = [
+        "eval",
+        "--method",
+        "random_walk",
+        "--checkpoint",
+        "last",
+        "--record",
+        "x.txt",
+        "--video",
+        "y.avi",
+    ]
+    assert main([*argv, "--runs", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "give --run DIR too; --record " in err and "must end in .rrd; --video " in err and ".mp4" in err
