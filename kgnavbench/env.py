@@ -227,6 +227,14 @@ class NavigationEnv(ParallelEnv):
     ):
         if observation not in OBSERVATION_FORMATS:
             raise EnvError(f"unknown observation {observation!r}; choose one of {OBSERVATION_FORMATS}")
+        flags = (("stop_ends", stop_ends), ("features", features), ("autoreset", autoreset))
+        for name, value in (*flags, ("privileged", privileged)):
+            if not isinstance(value, (bool, np.bool_)):  # "no" and "false" are true strings
+                raise EnvError(f"{name} must be True or False, not {value!r}")
+        if tasks is not None and not isinstance(tasks, KitchenTasks):
+            raise EnvError(
+                f"tasks must be a KitchenTasks (kgnavbench.tasks.load_tasks), not {type(tasks).__name__}"
+            )
         if success_rule not in SUCCESS_RULES:
             raise EnvError(f"unknown success_rule {success_rule!r}; choose one of {SUCCESS_RULES}")
         if success_rule == "arrival" and stop_ends:

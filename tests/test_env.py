@@ -44,7 +44,8 @@ def make_env(tasks):
     def make(**kwargs):
         kwargs.setdefault("n_agents", 1)
         kwargs.setdefault("privileged", True)  # these tests walk by the expert action and check states
-        return parallel_env(kitchen="FloorPlan1", tasks=tasks, **kwargs)
+        kwargs.setdefault("tasks", tasks)
+        return parallel_env(kitchen="FloorPlan1", **kwargs)
 
     return make
 
@@ -643,6 +644,12 @@ def test_training_targets_from_a_list(make_env):
         ({"view_size": 0}, "view_size must be a whole number of pixels in 8..256, not 0"),
         ({"view_size": 10**6}, "view_size must be a whole number of pixels in 8..256"),
         ({"view_size": 84.0}, "view_size must be a whole number of pixels"),
+        # as the Gymnasium envs: a flag is True or False ("no" and "false" are true strings)
+        ({"features": "no"}, "features must be True or False, not 'no'"),
+        ({"autoreset": "no"}, "autoreset must be True or False, not 'no'"),
+        ({"stop_ends": "false"}, "stop_ends must be True or False, not 'false'"),
+        ({"privileged": 1}, "privileged must be True or False, not 1"),
+        ({"tasks": "x"}, "tasks must be a KitchenTasks"),
     ],
 )
 def test_bad_options_are_reported(make_env, kwargs, message):
