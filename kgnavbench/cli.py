@@ -33,6 +33,7 @@ import contextlib
 import json
 import os
 import re
+import shlex
 import signal
 import sys
 import threading
@@ -398,12 +399,13 @@ def cmd_table(args: argparse.Namespace) -> int:
     if not assembles:
         if args.job is None:
             run_table(spec, args.preset, args.runs, **on, ray_address=args.ray, ray_node_ip=args.ray_node_ip)
-        trained = f" --trained {args.trained}" if args.trained is not None else ""
-        trained += f" --archive {args.archive}" if args.archive is not None else ""
-        print(
-            f"then `kgnavbench table --preset {args.preset} --runs {args.runs}{trained}` evaluates "
-            "what is left and assembles the table"
-        )
+        then = ["kgnavbench", "table", "--preset", args.preset, "--runs", str(args.runs)]
+        for option, value in (
+            ("--spec", args.spec), ("--trained", args.trained), ("--archive", args.archive),
+            ("--out", args.out), ("--ray", args.ray), ("--ray-node-ip", args.ray_node_ip),
+        ):  # fmt: skip
+            then += [option, str(value)] if value else []
+        print(f"then `{shlex.join(then)}` evaluates what is left and assembles the table")
         return 0
     ray = {"ray_address": args.ray, "ray_node_ip": args.ray_node_ip}
     result = run_table(spec, args.preset, args.runs, **on, rows_named=tuple(args.row or ()), **ray)

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from kgnavbench import runs
-from kgnavbench.cli import main
+from kgnavbench.cli import build_parser, main
 from kgnavbench.jobs import table_jobs, time_left
 from kgnavbench.metrics import EpisodeResult
 from kgnavbench.table import caption, to_ablation_csv, to_csv, to_latex, to_markdown, write_table
@@ -709,6 +709,10 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     assert main(smoke + ["--runs", str(trained), "--train-only"]) == 0
     out = capsys.readouterr().out
     assert "evaluates what is left and assembles" in out
+    # the follow-up command as printed: this spec, these runs, and options the command takes
+    then = shlex.split(out.split("then `")[1].split("`")[0])
+    assert then[:2] == ["kgnavbench", "table"] and then[then.index("--spec") + 1] == str(spec_path)
+    build_parser().parse_args(then[1:])
     assert not (trained / "eval").exists() and not list(tmp_path.rglob("table1-smoke.md"))
     assert len(list((trained / "train").glob("*/finished.json"))) == 1
 
