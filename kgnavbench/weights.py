@@ -7,6 +7,7 @@ every evaluation stage's error.
 
 from __future__ import annotations
 
+import csv
 import hashlib
 import io
 import json
@@ -83,7 +84,49 @@ def read_weights(run: str | Path, method: str, which: str = "best") -> Weights:
         raise EvalError(
             f"{source} is not the run its config.json describes: it differs in {'; '.join(differ[:4])}"
         )
+    role = checkpoint_role_problem(Path(run), which, record)
+    if role:
+        raise EvalError(f"{source} is not the run's {which} checkpoint: {role}")
     return Weights(source, data, hashlib.sha256(data).hexdigest())
+
+
+def checkpoint_role_problem(directory: Path, which: str, record: dict) -> str | None:
+    """What the checkpoint records against the role its name gives it (None: they agree): a snapshot
+    frames-N holds frame N's weights; a finished run's last.pt its final frame's; its best.pt those of
+    its highest validation SR in its own metrics.csv, ties to the later (runs finished under this rule
+    say so in finished.json; four zoo runs have it at their last frame, rightly). A file copied over
+    another with its checksum redone is caught here, not by the checksum."""
+    frames = record.get("frames")
+    if SNAPSHOT.fullmatch(which):
+        named = int(which.split("-", 1)[1])
+        return None if frames == named else f"it holds the weights of frame {frames}, not of frame {named}"
+    try:
+        finished = json.loads((directory / "finished.json").read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None  # an unfinished run: its best and last move on
+    if not isinstance(finished, dict):
+        return None
+    if which == "last":
+        final = finished.get("frames")
+        return (
+            None if frames == final else f"it holds the weights of frame {frames}, the run ended at {final}"
+        )
+    if "best_rule" not in finished:  # finished before the rule was written down: another rule chose
+        return None
+    try:
+        with open(directory / "metrics.csv", newline="") as f:
+            validated = [(float(r["val_sr"]), int(r["frames"])) for r in csv.DictReader(f) if r.get("val_sr")]
+    except (OSError, UnicodeDecodeError, KeyError, ValueError, csv.Error):
+        return None  # no readable record to check it against (the run's other checks name a damaged one)
+    if not validated:
+        return None
+    expected = max(validated)[1]  # the highest SR, ties to the later frame
+    if frames != expected:
+        return (
+            f"it holds the weights of frame {frames}, but the run's highest validation SR "
+            f"({max(validated)[0]:.2f}%) was at frame {expected} (its metrics.csv)"
+        )
+    return None
 
 
 def freeze_weights(directory: Path, weights: Weights) -> Path:

@@ -1019,6 +1019,37 @@ def test_eval_refuses_weights_that_are_not_the_run_config_json_describes(capsys,
     assert err.count("\n") == 1
 
 
+def test_a_checkpoint_whose_weights_are_not_its_roles_is_refused(capsys, tmp_path, floorplan1_tasks):
+    """A checkpoint's role is read from what it records, not from its file name: a snapshot file that
+    holds another snapshot's weights, a best.pt that is not the run's highest validation SR and a
+    last.pt that is not its final frame are refused by `eval --run`, though their checksums were redone."""
+    from kgnavbench.files import write_with_checksum
+
+    assert main(_train(tmp_path, frames=800, extra=("keep_every=200",))[3:]) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    snapshots = sorted((run_dir / "snapshots").glob("frames-*.pt"), key=lambda p: int(p.stem[7:]))
+    assert len(snapshots) >= 3
+    argv = ["eval", "--method", "lstm_a3c", "--run", str(run_dir), "--runs", str(tmp_path / "ev")]
+    argv += ["--kitchens", "FloorPlan1", "--episodes", "1"]
+    best_frames = runs.load_checkpoint(run_dir / "best.pt")["frames"]
+    other = next(p for p in snapshots if int(p.stem[7:]) != best_frames)
+    final = runs.load_checkpoint(run_dir / "last.pt")["frames"]
+    cases = [
+        (snapshots[0], snapshots[1], snapshots[0].stem),
+        (run_dir / "best.pt", other, "best"),
+        (run_dir / "last.pt", next(p for p in snapshots if int(p.stem[7:]) != final), "last"),
+    ]
+    for target, source, name in cases:
+        original = target.read_bytes()
+        write_with_checksum(target, source.read_bytes())
+        assert main([*argv, "--checkpoint", name]) == 2, name
+        err = capsys.readouterr().err
+        assert f"is not the run's {name} checkpoint: it holds the weights of frame" in err, err
+        assert err.count("\n") == 1
+        write_with_checksum(target, original)
+    assert main([*argv, "--checkpoint", "last"]) == 0  # the run as it was is evaluated
+
+
 # ----------------------------------------------------------------------------------------------------
 # the trainer's arithmetic, pinned: a refactoring of train.py must leave every weight's bytes alone
 
