@@ -104,7 +104,9 @@ def preset_rows(spec: TableSpec, preset: Preset) -> list[Row]:
 def table_jobs(spec: TableSpec, preset: Preset) -> list[tuple[Row, int]]:
     """The preset's jobs, (row, seed) each, in the table's order: job N (from 1) is the N-th. Every row's
     seeds below the preset's `seeds` come first, row by row; the seeds a row has beyond them (its
-    `row_seeds`) follow, row by row, so that adding seeds to a row renumbers no job."""
+    `row_seeds`) follow, row by row. Raising a row's seeds renumbers no job of the first part, but may
+    renumber the extra seeds of later rows: job numbers belong to one version of the spec (`--jobs`
+    prints them)."""
     rows = preset_rows(spec, preset)
     first = [(row, s) for row in rows for s in range(min(preset.seeds, preset.seeds_of(row.name)))]
     extra = [(row, s) for row in rows for s in range(preset.seeds, preset.seeds_of(row.name))]
