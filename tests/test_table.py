@@ -268,7 +268,7 @@ def test_a_row_can_have_its_own_seeds_which_follow_every_other_job_and_the_capti
     assert (preset.seeds_of("+KG"), preset.seeds_of("IL"), preset.seeds_of("FF A3C")) == (5, 4, 3)
     jobs = [(row.name, seed) for row, seed in table_jobs(spec, preset)]
     # the preset's seeds of every row first, in the old order but for LSTM A3C's third seed; then the
-    # extra seeds, row by row in the spec's order, so that adding seeds renumbers no other job
+    # extra seeds, row by row in the spec's order: adding seeds renumbers none of the first seeds' jobs
     old = [(row.name, seed) for row, seed in table_jobs(spec, before)]
     assert len(old) == 30  # the paper preset's ten rows, 3 seeds each
     assert jobs[: len(old) - 1] == [job for job in old if job != ("LSTM A3C", 2)]
