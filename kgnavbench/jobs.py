@@ -12,13 +12,17 @@ directory, so a job run twice, or killed and run again, continues where it stopp
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 import functools
 import json
 import multiprocessing
 import os
+import shlex
 import shutil
 import socket
+import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -577,6 +581,43 @@ def _check_ray_port(address: str, seconds: float = 5.0) -> None:
         ) from e
 
 
+RAY_HEAD_LOST_AFTER = 30.0  # seconds without an answer from the head: the cluster is lost (Ray waits 60)
+
+
+def _watch_head(
+    head: str, command: str, every: float = 5.0, lost_after: float = RAY_HEAD_LOST_AFTER, lost=None
+) -> threading.Event:
+    """A thread that connects to the head's port every `every` seconds; if it has not answered for
+    `lost_after`, the driver ends with one line naming what was lost and the command that resumes
+    (`lost`, for a test, is called with that line instead of ending the process). Set the returned
+    event to stop it."""
+    host, _, port = head.rpartition(":")
+    stop = threading.Event()
+
+    def end(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+        os._exit(2)  # Ray's own threads would otherwise wait out their 60 s and print a page
+
+    def watch() -> None:
+        silent_since = None
+        while not stop.wait(every):
+            try:
+                with socket.create_connection((host.strip("[]"), int(port)), timeout=min(every, 3.0)):
+                    silent_since = None
+            except OSError:
+                silent_since = silent_since or time.monotonic()
+                if time.monotonic() - silent_since >= lost_after:
+                    (lost or end)(
+                        f"kgnavbench: error: lost the Ray cluster's head at {head} (no answer for "
+                        f"{lost_after:.0f} s); the finished jobs and every run's last checkpoint are saved: "
+                        f"start a cluster and run `{command}` again to resume"
+                    )
+                    return
+
+    threading.Thread(target=watch, name="kgnavbench-ray-head", daemon=True).start()
+    return stop
+
+
 def run_jobs_on_ray(
     jobs: list[Job], address: str, progress=print, node_ip: str | None = None
 ) -> list[JobOutcome]:
@@ -595,9 +636,6 @@ def run_jobs_on_ray(
     if not jobs:
         return []
     _check_ray_port(address)
-    runs_dir = Path(jobs[0].runs_dir)
-    attempts_dir = runs_dir / "ray" / f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
-    attempts_dir.mkdir(parents=True)
     env = {name: os.environ[name] for name in RAY_ENV if name in os.environ}
     try:
         ray.init(
@@ -608,8 +646,20 @@ def run_jobs_on_ray(
             logging_level="WARNING",
         )
     except (ConnectionError, RuntimeError, ValueError) as e:
-        shutil.rmtree(attempts_dir, ignore_errors=True)
         raise TableError(f"--ray {address}: cannot reach a Ray cluster there ({first_line(e)})") from e
+    head = ray.get_runtime_context().gcs_address
+    cpus = int(ray.cluster_resources().get("CPU", 0))
+    needs = min(job.threads or 1 for job in jobs)
+    if cpus < needs:  # Ray would wait forever for a node that can run a task
+        ray.shutdown()
+        raise TableError(
+            f"--ray {address}: the cluster at {head} has {cpus} CPUs and a job needs {needs}; start its "
+            "nodes with CPUs (`ray start ... --num-cpus=N`, N >= 1)"
+        )
+    watchdog = _watch_head(head, shlex.join(["kgnavbench", *sys.argv[1:]]))
+    runs_dir = Path(jobs[0].runs_dir)
+    attempts_dir = runs_dir / "ray" / f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    attempts_dir.mkdir(parents=True)
     kinds = [trains(job.row) for job in jobs]
     outcomes: list[JobOutcome | None] = [None] * len(jobs)
     failed: dict[int, str] = {}
@@ -636,7 +686,6 @@ def run_jobs_on_ray(
 
     try:
         task = ray.remote(_ray_task)
-        cpus = int(ray.cluster_resources().get("CPU", 1))
         refs = {}
         for n, job in enumerate(jobs):
             job = dataclasses.replace(job, threads=job.threads or 1)
@@ -645,7 +694,8 @@ def run_jobs_on_ray(
             remote = task.options(name=title(n), **options)
             refs[remote.remote(job, title(n), attempts, os.getcwd())] = n
         parallel = max(1, cpus // max(job.threads or 1 for job in jobs))
-        progress(f"== {len(jobs)} jobs on the Ray cluster at {address} ({cpus} CPUs)")
+        joined = f"{address} (head {head})" if address != head else address  # "auto": the one it joined
+        progress(f"== {len(jobs)} jobs on the Ray cluster at {joined} ({cpus} CPUs)")
         pending = list(refs)
         while pending:
             ready, pending = ray.wait(pending, num_returns=1, timeout=RAY_STATUS_EVERY)
@@ -667,8 +717,11 @@ def run_jobs_on_ray(
                 progress(f"== done {title(n)} in {outcomes[n].seconds / 60:.1f} min")
             progress(status(parallel))
     finally:
+        watchdog.set()
         ray.shutdown()
         shutil.rmtree(attempts_dir, ignore_errors=True)
+        with contextlib.suppress(OSError):  # runs/ray, unless another driver keeps its attempts there
+            attempts_dir.parent.rmdir()
     if failed:
         names = "; ".join(f"{title(n)}: {why}" for n, why in sorted(failed.items()))
         raise TableError(

@@ -278,3 +278,45 @@ def test_an_address_nothing_answers_at_is_one_line_at_once(tmp_path, capsys):
     assert len(err.splitlines()) == 1 and f"--ray 127.0.0.2:{port}: nothing answers there" in err, err
     assert time.monotonic() - t0 < 30
     assert not (tmp_path / "runs" / "ray").exists() and not (tmp_path / "runs" / "train").exists()
+
+
+def test_a_cluster_without_the_cpus_a_job_needs_is_refused_at_once(cluster, tmp_path, capsys):
+    """Jobs that need more CPUs than the cluster has (here: 3 torch threads on two one-CPU nodes; a
+    head started with --num-cpus=0 is the same case) are refused in one line naming the cluster,
+    where Ray would wait forever; no attempts folder is left behind."""
+    smoke = SPEC_FILE.read_text().split("[presets.smoke]\n", 1)[1].split("\n\n", 1)[0]
+    wide = smoke.replace('threads = "1"', 'threads = "3"')
+    assert wide != smoke
+    spec = _spec(tmp_path, f"[presets.wide]\n{wide}")
+    t0 = time.monotonic()
+    argv = ["table", "--spec", str(spec), "--preset", "wide", "--runs", str(tmp_path / "runs")]
+    assert main([*argv, "--ray", cluster.address, "--ray-node-ip", HEAD]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "has 2 CPUs and a job needs 3" in err and cluster.address in err, (
+        err
+    )
+    assert time.monotonic() - t0 < 30
+    assert not (tmp_path / "runs" / "ray").exists() and not (tmp_path / "runs" / "train").exists()
+
+
+def test_a_lost_head_ends_the_driver_with_one_line_and_the_command_that_resumes():
+    """The driver's watch on the head: once its port has not answered for `lost_after` seconds, one
+    line names the head and the command to run again (here given to a callback, not the process's end)."""
+    from kgnavbench.jobs import _watch_head
+
+    with socket.socket() as server:
+        server.bind((HEAD, 0))
+        server.listen()
+        head = f"{HEAD}:{server.getsockname()[1]}"
+        said = []
+        stop = _watch_head(
+            head, "kgnavbench table --preset smoke --ray X", every=0.1, lost_after=0.5, lost=said.append
+        )
+        time.sleep(0.5)
+        assert not said  # it answers
+    t0 = time.monotonic()
+    while not said and time.monotonic() - t0 < 10:
+        time.sleep(0.05)
+    stop.set()
+    assert len(said) == 1 and said[0].startswith("kgnavbench: error: lost the Ray cluster's head at " + head)
+    assert "`kgnavbench table --preset smoke --ray X` again to resume" in said[0]
