@@ -213,7 +213,14 @@ def run_with_snapshots(preset, row, seed, runs_dir, device, progress, unfinished
         progress(f"skipped: {e}")
         return None
     if not snapshot_frames(run_dir):
-        progress(f"skipped: {run_dir} kept no snapshot (trained without keep_every)")
+        keep_every = run_keep_every(run_dir)
+        why = (
+            f"its snapshots/ folder holds none, though it trained with keep_every={keep_every} (deleted, "
+            "or a zoo copy, which ships best.pt and last.pt only)"
+            if keep_every
+            else "it trained without keep_every"
+        )
+        progress(f"skipped: {run_dir} kept no snapshot: {why}")
         return None
     return run_dir
 

@@ -4,6 +4,7 @@ checkpoint rule replayed from it, and its figure."""
 from __future__ import annotations
 
 import csv
+import json
 import math
 
 import cv2
@@ -308,3 +309,22 @@ def test_a_matched_comparison_is_table_is_comparison_on_the_same_episodes():
         assert x["verdict"] == want.verdict and (x["base_seeds"], x["other_seeds"]) == (3, 2)
         paper = want.paper_difference
         assert math.isnan(x["paper_difference"]) if paper is None else x["paper_difference"] == paper
+
+
+def test_a_run_whose_snapshots_are_gone_is_skipped_for_the_right_reason(tmp_path, monkeypatch):
+    """A run trained with keep_every whose snapshots/ folder is empty is named as such, not as one
+    trained without keep_every (which is said only where it is true)."""
+    from kgnavbench import checkpoints
+
+    said = []
+    for keep_every, expected in (
+        (2500, "though it trained with keep_every=2500"),
+        (0, "trained without keep_every"),
+    ):
+        run_dir = tmp_path / f"run-{keep_every}"
+        (run_dir / "snapshots").mkdir(parents=True)
+        (run_dir / "config.json").write_text(json.dumps({"options": {"keep_every": str(keep_every)}}))
+        monkeypatch.setattr(checkpoints, "find_trained", lambda *a, run_dir=run_dir, **k: run_dir)
+        monkeypatch.setattr(checkpoints, "row_options", lambda preset, row: {})
+        assert checkpoints.run_with_snapshots(None, None, 0, tmp_path, "cpu", said.append) is None
+        assert said[-1].startswith(f"skipped: {run_dir} kept no snapshot") and expected in said[-1], said[-1]
