@@ -1,10 +1,18 @@
 """Shared fixtures: a hermetic state-graph cache and FloorPlan1's tasks, built once per session."""
 
 import os
+import secrets
 
 import pytest
 
 from kgnavbench import tasks
+
+# Ray's token authentication for every cluster the suite starts (tests/test_ray.py) and every driver
+# in it, set before anything imports Ray (which reads it once per process): a token made for this run
+# of the suite, which nothing else on the machine knows. Nobody on the network can run code on the
+# suite's clusters while it runs.
+os.environ["RAY_AUTH_MODE"] = "token"
+os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
 
 
 @pytest.fixture(scope="session", autouse=True)

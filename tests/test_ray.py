@@ -13,6 +13,7 @@ import contextlib
 import json
 import os
 import re
+import secrets
 import shutil
 import signal
 import socket
@@ -124,7 +125,9 @@ class Cluster:
 @pytest.fixture(scope="module")
 def cluster(hermetic_cache):
     """One cluster for every test here (Ray takes seconds to start); the nodes see the driver's
-    state-graph cache and numerics through the table's runtime environment."""
+    state-graph cache and numerics through the table's runtime environment. Private: on loopback
+    addresses, with Ray's token authentication and the suite's own token (tests/conftest.py)."""
+    assert os.environ.get("RAY_AUTH_MODE") == "token" and len(os.environ.get("RAY_AUTH_TOKEN", "")) == 64
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
     temp_dir = tempfile.mkdtemp(prefix="kgr", dir="/tmp")  # short: Ray's socket paths must fit 107 bytes
     cluster = Cluster(env, temp_dir)
@@ -320,3 +323,29 @@ def test_a_lost_head_ends_the_driver_with_one_line_and_the_command_that_resumes(
     stop.set()
     assert len(said) == 1 and said[0].startswith("kgnavbench: error: lost the Ray cluster's head at " + head)
     assert "`kgnavbench table --preset smoke --ray X` again to resume" in said[0]
+
+
+def test_a_client_without_the_clusters_token_is_refused(cluster):
+    """The test cluster runs code only for who holds its token: a driver without it (or with another)
+    is refused (Ray's "InvalidAuthToken"), and never joins."""
+    script = f"import ray; ray.init(address={cluster.address!r}, _node_ip_address={HEAD!r}); print('joined')"
+    for token in ("", secrets.token_hex(32)):
+        env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_AUTH")}
+        env |= {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": token} if token else {}
+        client = subprocess.Popen(
+            [sys.executable, "-c", script], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True, start_new_session=True,
+        )  # fmt: skip
+        said, deadline = [], time.monotonic() + 60
+        try:
+            for (
+                line
+            ) in client.stdout:  # Ray retries a refused token once a second: its first refusal is enough
+                said.append(line)
+                if "InvalidAuthToken" in line or "joined" in line or time.monotonic() > deadline:
+                    break
+        finally:
+            _kill_session(client.pid)
+            client.wait(timeout=30)
+        assert any("InvalidAuthToken" in line for line in said), "".join(said)[-2000:]
+        assert not any(line.startswith("joined") for line in said)
