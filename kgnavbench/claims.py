@@ -6,9 +6,10 @@ grants to one process only. It is released (deleted) when the work ends. A claim
 this same host, is stale (a killed run): the next claimant moves it aside (a rename, which one process
 alone wins) and claims afresh. A claim from another host is never judged stale from here (its pid means
 nothing on this machine): the message names the host, and deleting the claim file frees it. Except on a
-Ray cluster (`jobs.run_jobs_on_ray`): there a claim also records its Ray node, and a claim whose node Ray
-reports dead is stale wherever it is read, so that a job retried on another node takes over its run
-directory.
+Ray cluster (`jobs.run_jobs_on_ray`): there a claim also records its Ray node and its cluster's head,
+and a claim whose node Ray reports dead, or whose cluster is gone (its head answers no more: a rerun
+on a fresh cluster after the head was lost), is stale wherever it is read, so that a job retried on
+another node, or on another cluster, takes over its run directory.
 """
 
 from __future__ import annotations
@@ -28,19 +29,47 @@ class ClaimError(KgnavbenchError, RuntimeError):
     """The thing is claimed by another live process (the message says which)."""
 
 
-# on a Ray cluster: this process's node, and the nodes Ray reported dead when its task started
-_cluster: dict = {"node": None, "dead": frozenset()}
+# on a Ray cluster: this process's node and cluster (its head's GCS address), the nodes Ray reported
+# dead when its task started, and every node it knew of then
+_cluster: dict = {"node": None, "dead": frozenset(), "nodes": frozenset(), "head": None}
 
 
-def on_cluster(node: str | None, dead_nodes=()) -> None:
-    """Claims made from now on record Ray node `node`; a claim recorded by one of `dead_nodes` is
-    stale (its process died with its node, on whatever host). None: not on a cluster."""
-    _cluster.update(node=node, dead=frozenset(dead_nodes))
+def on_cluster(node: str | None, dead_nodes=(), nodes=(), head: str | None = None) -> None:
+    """Claims made from now on record Ray node `node` and its cluster's head `head`; a claim recorded
+    by one of `dead_nodes` is stale (its process died with its node, on whatever host), and so is one
+    recorded on another cluster whose head no longer answers (that cluster is gone, its processes with
+    it), or on this cluster by a node it does not know (`nodes`). None: not on a cluster."""
+    _cluster.update(node=node, dead=frozenset(dead_nodes), nodes=frozenset(nodes), head=head)
 
 
 def _me() -> dict:
     me = {"host": socket.gethostname(), "pid": os.getpid(), "since": round(time.time(), 3)}
-    return me if _cluster["node"] is None else {**me, "node": _cluster["node"]}
+    if _cluster["node"] is None:
+        return me
+    return {**me, "node": _cluster["node"], "head": _cluster["head"]}
+
+
+def _answers(head: str, seconds: float = 3.0) -> bool:
+    """Whether something listens at a cluster head's HOST:PORT."""
+    host, _, port = head.rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=seconds):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
+def _of_a_lost_cluster(record: dict) -> str | None:
+    """Why a claim made on a Ray cluster holds nothing any more, read from a task on a cluster: its
+    node is dead, or unknown to this cluster, or its cluster's head is gone; None where none of these."""
+    node, head = record.get("node"), record.get("head")
+    if node in _cluster["dead"]:
+        return f"its Ray node {node} is dead"
+    if _cluster["node"] is None or not isinstance(head, str):
+        return None
+    if head == _cluster["head"]:
+        return f"its Ray node {node} is not in this cluster" if node not in _cluster["nodes"] else None
+    return None if _answers(head) else f"its Ray cluster (head {head}) is gone"
 
 
 def read(path: Path) -> dict | None:
@@ -77,8 +106,11 @@ def stale(record: dict | None, path: Path | None = None) -> bool:
             return time.time() - os.stat(path).st_mtime > WRITING_GRACE
         except OSError:
             return False
-    if record.get("node") is not None and record.get("node") in _cluster["dead"]:
-        return True  # its Ray node is dead, and its process with it
+    if record.get("node") is not None:
+        lost = _of_a_lost_cluster(record)
+        if lost:  # its process went with its node or cluster, on whatever host: say so in the run's log
+            print(f"kgnavbench: taking over {path or 'a claim'} of {describe(record)}: {lost}", flush=True)
+            return True
     host, pid = record.get("host"), record.get("pid")
     if not isinstance(host, str):
         return True

@@ -551,7 +551,13 @@ def _ray_task(job: Job, title: str, attempts: str, cwd: str) -> JobOutcome:
             f"({e.strerror}); run the table from a folder that every node shares, at the same path"
         ) from e
     node = ray.get_runtime_context().get_node_id()
-    claims.on_cluster(node, [n["NodeID"] for n in ray.nodes() if not n["Alive"]])
+    nodes = ray.nodes()
+    claims.on_cluster(
+        node,
+        [n["NodeID"] for n in nodes if not n["Alive"]],
+        [n["NodeID"] for n in nodes],
+        ray.get_runtime_context().gcs_address,
+    )
     with open(attempts, "a") as f:
         record = {"node": node, "host": socket.gethostname(), "pid": os.getpid(), "since": time.time()}
         f.write(json.dumps(record) + "\n")

@@ -97,3 +97,48 @@ def test_malformed_and_abandoned_claims_are_taken_over_or_named_without_a_traceb
         match = "another-machine since an unknown time"
         with pytest.raises(claims.ClaimError, match=match), claims.held(path, "run X"):
             pass
+
+
+def test_a_claim_of_a_lost_cluster_is_taken_over_on_a_new_one_and_a_live_ones_is_not(tmp_path, capsys):
+    """After a head is lost, a rerun on a fresh cluster finds claims that tasks of the old cluster left,
+    on other hosts: the old head answers no more, so they are taken over (and the takeover is said); a
+    claim of a cluster whose head still answers, or of a live node of this cluster, still refuses."""
+    import socket
+
+    path = tmp_path / "trainer.claim"
+    with socket.socket() as live_head, socket.socket() as gone:
+        live_head.bind(("127.0.0.2", 0))
+        live_head.listen()
+        gone.bind(("127.0.0.2", 0))  # bound, never listening: nothing answers there
+        live = f"127.0.0.2:{live_head.getsockname()[1]}"
+        lost = f"127.0.0.2:{gone.getsockname()[1]}"
+        try:
+            claims.on_cluster("new1", dead_nodes=(), nodes=("new1", "new2"), head="127.0.0.2:1")
+            # another live cluster's claim (its head answers), on another host: refused
+            path.write_text(
+                json.dumps({"host": "node-b", "pid": 7, "since": 0.0, "node": "old", "head": live})
+            )
+            assert not claims.claim(path)
+            # a live node of this cluster: refused
+            path.write_text(
+                json.dumps({"host": "node-b", "pid": 7, "since": 0.0, "node": "new2", "head": "127.0.0.2:1"})
+            )
+            assert not claims.claim(path)
+            # a node this cluster does not know, recorded under this cluster's head: taken over
+            path.write_text(
+                json.dumps({"host": "node-b", "pid": 7, "since": 0.0, "node": "x", "head": "127.0.0.2:1"})
+            )
+            assert claims.claim(path)
+            path.unlink()
+            # the lost cluster's claim: taken over, with the evidence in the log
+            path.write_text(
+                json.dumps({"host": "node-b", "pid": 7, "since": 0.0, "node": "old", "head": lost})
+            )
+            assert claims.claim(path)
+            record = claims.read(path)
+            assert record["node"] == "new1" and record["head"] == "127.0.0.2:1"
+            assert f"its Ray cluster (head {lost}) is gone" in capsys.readouterr().out
+        finally:
+            claims.on_cluster(None)
+    claims.release(path)
+    assert not path.exists()
