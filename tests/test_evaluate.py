@@ -223,10 +223,11 @@ def test_random_walk_is_deterministic_and_resumes(tmp_path, floorplan1_tasks):
     first = evaluate(config, tmp_path / "a", progress=lines.append)
     again = evaluate(config, tmp_path / "b", progress=lambda line: None)
     assert first.results == again.results
-    assert len(lines) == 1 and "agent-steps/s" in lines[0]
+    assert len(lines) == 2 and lines[0] == "evaluating random_walk: 1 kitchens, 68 episodes"
+    assert "agent-steps/s" in lines[1]
     # the same config in the same runs dir resumes from the saved kitchen instead of rerunning it
     resumed = evaluate(config, tmp_path / "a", progress=lines.append)
-    assert resumed.resumed == ["FloorPlan1"] and resumed.results == first.results and len(lines) == 1
+    assert resumed.resumed == ["FloorPlan1"] and resumed.results == first.results and len(lines) == 2
     saved = json.loads((first.directory / "config.json").read_text())
     assert saved["identity"]["config"]["method"] == "random_walk" and saved["git_revision"]
     assert saved["machine"]["cpu"] and "machine" not in saved["identity"]  # recorded, decides nothing
