@@ -1248,9 +1248,11 @@ def test_training_is_announced_with_its_cost_before_it_starts(tmp_path):
     jobs = [(row, seed) for row, seed in table_jobs(spec, preset) if row.name in ("+KG", "+KG+Attention")]
     lines = []
     table_module.announce_training(preset, jobs, tmp_path, "cpu", lines.append)
-    hours = 6 * 40_000_000 / table_module.FRAMES_PER_CORE_SECOND / 3600
+    n = len(jobs)  # +KG's seeds (the spec's row_seeds) and +KG+Attention's 3
+    assert n == preset.seeds_of("+KG") + preset.seeds_of("+KG+Attention")
+    hours = n * 40_000_000 / table_module.FRAMES_PER_CORE_SECOND / 3600
     assert lines == [
-        f"== training 6 of the preset's 6 runs (40,000,000 frames each; finished ones are reused, "
+        f"== training {n} of the preset's {n} runs (40,000,000 frames each; finished ones are reused, "
         f"unfinished ones resume): about {hours:.1f} core-hours on a CPU"
     ]
     row, seed = jobs[0]
@@ -1268,7 +1270,7 @@ def test_training_is_announced_with_its_cost_before_it_starts(tmp_path):
     (finished / "finished.json").write_text("{}")
     lines.clear()
     table_module.announce_training(preset, jobs, tmp_path, "cpu", lines.append)
-    assert lines[0].startswith("== training 5 of the preset's 6 runs")
+    assert lines[0].startswith(f"== training {n - 1} of the preset's {n} runs")
     lines.clear()
     table_module.announce_training(preset, jobs[:1], tmp_path, "cpu", lines.append)
     assert lines == []
