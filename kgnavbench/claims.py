@@ -49,8 +49,8 @@ def _me() -> dict:
     return {**me, "node": _cluster["node"], "head": _cluster["head"]}
 
 
-def _answers(head: str, seconds: float = 3.0) -> bool:
-    """Whether something listens at a cluster head's HOST:PORT."""
+def answers(head: str, seconds: float = 3.0) -> bool:
+    """Whether something listens at HOST:PORT (a Ray cluster's head)."""
     host, _, port = head.rpartition(":")
     try:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=seconds):
@@ -69,7 +69,7 @@ def _of_a_lost_cluster(record: dict) -> str | None:
         return None
     if head == _cluster["head"]:
         return f"its Ray node {node} is not in this cluster" if node not in _cluster["nodes"] else None
-    return None if _answers(head) else f"its Ray cluster (head {head}) is gone"
+    return None if answers(head) else f"its Ray cluster (head {head}) is gone"
 
 
 def read(path: Path) -> dict | None:

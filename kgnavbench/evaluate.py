@@ -547,18 +547,19 @@ def evaluate(
     run = EvalRun(config, directory)
     start = time.perf_counter()
     evaluated, evaluating = 0, 0.0  # kitchens evaluated in this process and their seconds (the ETA)
+    expected_of = {
+        k: expected_episodes(k, config.episodes_per_target, config.seen_targets_only(k)) for k in kitchens
+    }
     todo = [k for k in kitchens if not (directory / "episodes" / f"{k}.jsonl").exists()]
     if todo:  # long work says what it will do; the time per kitchen and an ETA follow each kitchen
-        episodes = sum(
-            len(expected_episodes(k, config.episodes_per_target, config.seen_targets_only(k))) for k in todo
-        )
+        episodes = sum(len(expected_of[k]) for k in todo)
         kept = (
             f" ({len(kitchens) - len(todo)} done before, in {directory})" if len(todo) < len(kitchens) else ""
         )
         progress(f"evaluating {config.method}: {len(todo)} kitchens, {episodes:,} episodes{kept}")
     for k, kitchen in enumerate(kitchens):
         path = directory / "episodes" / f"{kitchen}.jsonl"
-        expected = expected_episodes(kitchen, config.episodes_per_target, config.seen_targets_only(kitchen))
+        expected = expected_of[kitchen]
         results = None
         if path.exists():
             data = path.read_bytes()

@@ -597,7 +597,6 @@ def _watch_head(
     `lost_after`, the driver ends with one line naming what was lost and the command that resumes
     (`lost`, for a test, is called with that line instead of ending the process). Set the returned
     event to stop it."""
-    host, _, port = head.rpartition(":")
     stop = threading.Event()
 
     def end(line: str) -> None:
@@ -607,10 +606,9 @@ def _watch_head(
     def watch() -> None:
         silent_since = None
         while not stop.wait(every):
-            try:
-                with socket.create_connection((host.strip("[]"), int(port)), timeout=min(every, 3.0)):
-                    silent_since = None
-            except OSError:
+            if claims.answers(head, min(every, 3.0)):
+                silent_since = None
+            else:
                 silent_since = silent_since or time.monotonic()
                 if time.monotonic() - silent_since >= lost_after:
                     (lost or end)(
