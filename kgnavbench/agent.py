@@ -147,6 +147,39 @@ class Model:
                 logits, values = self.net.heads(outputs)
         return logits.float().view(n, b, -1), values.float().view(n, b)
 
+    def unroll_sequences(self, space: StateSpace, states, goals, lengths, hidden, graph):
+        """The LSTM network over N sequences of different lengths, for learning: states and goals (L, N)
+        padded after each sequence's `lengths` (N,) steps, the LSTM state (h, c) (N, lstm) before their
+        first step. Every layer runs on the real steps only, packed as torch packs sequences
+        (`ActorCritic.recur_packed`); the padding's logits and values are 0. -> logits (L, N, 10),
+        values (L, N). (Padded to the longest, a TSE batch is some three quarters padding, measured.)"""
+        length, n = states.shape
+        order, batch_sizes, (step, seq) = packed_order(lengths)
+        view, target, target_rows, r_t, r_g = self.inputs(space, states[step, seq], goals[step, seq])
+        h, c = hidden
+        sorted_rows = self.tensor(order)
+        with self.autocast():
+            joint, _ = self.net.encode(view, target, r_t, r_g, graph, target_rows)
+            outputs = self.net.recur_packed(
+                joint,
+                torch.from_numpy(batch_sizes),
+                (h[sorted_rows[: batch_sizes[0]]], c[sorted_rows[: batch_sizes[0]]]),
+            )
+            logits, values = self.net.heads(outputs)
+        where = (self.tensor(step), self.tensor(seq))
+        logits = logits.float().new_zeros(length, n, logits.shape[-1]).index_put(where, logits.float())
+        values = values.float().new_zeros(length, n).index_put(where, values.float())
+        return logits, values
+
+
+def packed_order(lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How torch packs sequences of these lengths (N,): the order of the sequences (longest first,
+    ties in their order), the batch size at each step, and each packed row's (step, sequence)."""
+    order = np.argsort(-np.asarray(lengths), kind="stable")
+    live = np.arange(int(lengths.max()))[:, None] < np.asarray(lengths)[order][None]  # (L, N) sorted
+    steps, ranks = np.nonzero(live)  # time-major, the sequences in sorted order within a step
+    return order, live.sum(1), np.stack([steps, order[ranks]])
+
 
 def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, seed: int, scene=None):
     """Run fixed episodes (target rows, start states) to the end with the model's sampled actions;

@@ -586,6 +586,22 @@ class ActorCritic(nn.Module):
             state = self.initial_state(joint.shape[1], joint.device)
         return self._lstm(joint, state)[0]
 
+    def recur_packed(self, joint: Tensor, batch_sizes: Tensor, state) -> Tensor:
+        """The LSTM over sequences of different lengths, packed as torch's PackedSequence packs them:
+        joint (P, J) holds step 0 of every sequence, then step 1 of those still going, ... (longest
+        first), `batch_sizes` (CPU int64) how many at each step; the state (h, c) (N, lstm) before the
+        first step, in the same order -> the outputs h (P, lstm). Only real steps are computed: padded
+        to the longest, a TSE batch is some three quarters padding (measured)."""
+        cell = self.lstm
+        weights = [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh]
+        dtype = cell.weight_ih.dtype
+        h, c = state
+        joint, h, c = joint.to(dtype).contiguous(), h.to(dtype)[None], c.to(dtype)[None]
+        training = torch.is_grad_enabled()
+        fp32_lstm = joint.device.type == "cpu" and not _CPU_HAS_BF16 and torch.is_autocast_enabled("cpu")
+        with torch.autocast("cpu", enabled=False) if fp32_lstm else contextlib.nullcontext():
+            return torch.lstm(joint, batch_sizes, (h, c), weights, True, 1, 0.0, training, False)[0]
+
     def _lstm(self, joint: Tensor, state) -> tuple[Tensor, Tensor, Tensor]:
         """torch's fused LSTM (oneDNN on the CPU, cuDNN on CUDA) with the LSTMCell's own weights (the
         checkpoints keep LSTMCell's names). The same function as the cell to float rounding, and about

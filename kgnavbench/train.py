@@ -496,10 +496,13 @@ def sequence_pass(model: Model, space: StateSpace, seq: Sequences, graph):
         history = np.ascontiguousarray(np.transpose(seq.states[:, np.clip(back, 0, None)], (1, 0, 2)))
         scene = space.kitchen_of[seq.states[:, 0]]
     hidden = model.net.initial_state(n, model.device)
-    if hidden is not None and seq.hidden is not None:
+    if hidden is None:
+        return model.unroll(space, states, goals, hidden, None, graph, scene, history)
+    if seq.hidden is not None:
         start = model.tensor(seq.hidden)
         hidden = (start[:, 0].to(hidden[0].dtype), start[:, 1].to(hidden[1].dtype))
-    return model.unroll(space, states, goals, hidden, None, graph, scene, history)
+    # the real steps only (each sequence's mask is a prefix): no work on the padding
+    return model.unroll_sequences(space, states, goals, seq.mask.sum(1), hidden, graph)
 
 
 def ff_validation_episodes(space: StateSpace, at_least: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
