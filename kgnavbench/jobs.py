@@ -18,6 +18,7 @@ import functools
 import json
 import multiprocessing
 import os
+import platform
 import shlex
 import shutil
 import socket
@@ -39,7 +40,7 @@ from .evaluate import (
     evaluate,
     scored_visible,
 )
-from .files import NUMERICS_ENV, atomic_write, end_with_parent, first_line, one_line
+from .files import NUMERICS_ENV, atomic_write, end_with_parent, first_line, git_revision, one_line
 from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, load_plugin
 from .runs import (
@@ -587,6 +588,57 @@ def _check_ray_port(address: str, seconds: float = 5.0) -> None:
         ) from e
 
 
+def node_environment() -> dict[str, str]:
+    """What must be the same on every node as on the driver, or a job's floats (or its code) are not
+    the table's: Python's version, torch's, and kgnavbench's revision (files.git_revision)."""
+    return {"Python": platform.python_version(), "torch": torch.__version__, "kgnavbench": git_revision()}
+
+
+def environment_problems(driver: dict[str, str], nodes: dict[str, dict[str, str]]) -> str | None:
+    """One sentence naming the first node (by host) whose `node_environment` differs from the driver's
+    and how; None when every node's is the driver's."""
+    for host, theirs in sorted(nodes.items()):
+        differ = [
+            f"{k} {theirs.get(k, '(none)')} (here {v})" for k, v in driver.items() if theirs.get(k) != v
+        ]
+        if differ:
+            return f"node {host} runs {', '.join(differ)}"
+    return None
+
+
+RAY_PROBE_SECONDS = 25.0  # how long the driver waits for every node's environment
+
+
+def _check_ray_nodes(ray, address: str, head: str) -> None:
+    """Ask every live node, in a task pinned to it that takes no CPU (so a busy node answers too), for its
+    `node_environment`; a node that differs from the driver, or does not answer, is a TableError.
+    (A node that joins later is not asked.)"""
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    nodes = [n for n in ray.nodes() if n["Alive"]]
+    probe = ray.remote(num_cpus=0, max_retries=0)(node_environment)
+    refs = [
+        probe.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote()
+        for n in nodes
+    ]
+    try:
+        reports = ray.get(refs, timeout=RAY_PROBE_SECONDS)
+    except Exception as e:  # noqa: BLE001 - Ray's time-out and a dead node's errors alike
+        raise TableError(
+            f"--ray {address}: not every node of the cluster at {head} answered within "
+            f"{RAY_PROBE_SECONDS:.0f} s ({type(e).__name__}: {first_line(e)}); check `ray status`"
+        ) from e
+    hosts = {
+        f"{n.get('NodeManagerHostname', '?')} ({n['NodeManagerAddress']})": r for n, r in zip(nodes, reports)
+    }
+    problem = environment_problems(node_environment(), hosts)
+    if problem:
+        raise TableError(
+            f"--ray {address}: {problem}; every node needs the driver's Python, torch and kgnavbench "
+            "(the same install and commit, docs/scaling.md)"
+        )
+
+
 RAY_HEAD_LOST_AFTER = 30.0  # seconds without an answer from the head: the cluster is lost (Ray waits 60)
 
 
@@ -660,6 +712,11 @@ def run_jobs_on_ray(
             f"--ray {address}: the cluster at {head} has {cpus} CPUs and a job needs {needs}; start its "
             "nodes with CPUs (`ray start ... --num-cpus=N`, N >= 1)"
         )
+    try:
+        _check_ray_nodes(ray, address, head)
+    except TableError:
+        ray.shutdown()
+        raise
     watchdog = _watch_head(head, shlex.join(["kgnavbench", *sys.argv[1:]]))
     runs_dir = Path(jobs[0].runs_dir)
     attempts_dir = runs_dir / "ray" / f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"

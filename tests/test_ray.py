@@ -302,6 +302,38 @@ def test_a_cluster_without_the_cpus_a_job_needs_is_refused_at_once(cluster, tmp_
     assert not (tmp_path / "runs" / "ray").exists() and not (tmp_path / "runs" / "train").exists()
 
 
+def test_a_cluster_whose_nodes_run_other_code_is_refused_at_once(cluster, tmp_path, capsys, monkeypatch):
+    """Every node is asked for its Python, torch and kgnavbench revision before anything is scheduled
+    (a task that takes no CPU, pinned to the node); one that differs from the driver's is named in one
+    line and nothing runs. Faked on the driver's side: its revision here is one the nodes do not run."""
+    from kgnavbench import jobs
+
+    monkeypatch.setattr(jobs, "git_revision", lambda: "0" * 40)
+    t0 = time.monotonic()
+    argv = ["table", "--preset", "smoke", "--runs", str(tmp_path / "runs")]
+    assert main([*argv, "--ray", cluster.address, "--ray-node-ip", HEAD]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"--ray {cluster.address}: node " in err, err
+    differs = err.split(" runs ", 1)[1].split("; every node")[0]
+    assert differs.startswith("kgnavbench ") and differs.endswith("(here " + "0" * 40 + ")"), err
+    assert time.monotonic() - t0 < 30
+    assert not (tmp_path / "runs" / "ray").exists() and not (tmp_path / "runs" / "train").exists()
+
+
+def test_the_environment_check_names_the_first_node_that_differs():
+    from kgnavbench.jobs import environment_problems
+
+    here = {"Python": "3.11.2", "torch": "2.13.0", "kgnavbench": "abc"}
+    assert environment_problems(here, {"a": dict(here), "b": dict(here)}) is None
+    other = {**here, "torch": "2.12.1", "kgnavbench": "def"}
+    assert environment_problems(here, {"b": other, "a": dict(here)}) == (
+        "node b runs torch 2.12.1 (here 2.13.0), kgnavbench def (here abc)"
+    )
+    assert environment_problems(here, {"c": {"Python": "3.11.2"}}) == (
+        "node c runs torch (none) (here 2.13.0), kgnavbench (none) (here abc)"
+    )
+
+
 def test_a_lost_head_ends_the_driver_with_one_line_and_the_command_that_resumes():
     """The driver's watch on the head: once its port has not answered for `lost_after` seconds, one
     line names the head and the command to run again (here given to a callback, not the process's end)."""
