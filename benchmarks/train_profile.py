@@ -46,6 +46,7 @@ from pathlib import Path
 import torch
 
 from kgnavbench import agent, losses, models, rollout, runs, train, vecenv
+from kgnavbench.files import end_with_parent
 from kgnavbench.plugins import load_plugin
 from kgnavbench.table_spec import SPEC_FILE, load_spec
 
@@ -176,6 +177,8 @@ def main() -> None:
     parser.add_argument("--beside", action="store_true", help="a second copy of the row runs meanwhile")
     parser.add_argument("--quiet-copy", action="store_true", help=argparse.SUPPRESS)  # the --beside copy
     args = parser.parse_args()
+    if args.quiet_copy:  # ends with the measured process, killed or not
+        end_with_parent(os.getppid())
     names = [r for r in args.rows.split(",") if r]
     print(
         f"preset {args.preset}, {args.frames:,} frames per row, seed 0, torch {torch.__version__}, "

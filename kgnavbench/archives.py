@@ -113,7 +113,9 @@ def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
     kitchen's results with their checksums, each checked against the sha256 it was packed with. Files
     already there are kept, never overwritten: a config.json of the same evaluation (its identity; the
     git revision, machine and plugin path it records may differ) stays, another one is refused; a
-    later evaluation of that config then resumes from them."""
+    kitchen's results file that holds the archive's episodes stays, one that holds others is refused
+    (nothing is unpacked: the runs folder and the archive disagree, and neither is silently preferred).
+    A later evaluation of that config then resumes from them."""
     import csv
     import lzma
     import tarfile
@@ -157,13 +159,28 @@ def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
         by_kitchen.setdefault(row["kitchen"], []).append(json.dumps(row) + "\n")
     if set(by_kitchen) != set(checksums):
         raise EvalError(f"{archive}: its episodes and its checksums name other kitchens")
-    if not config_path.exists():
-        write_results_file(config_path, config_bytes)
+    rebuilt = {}
     for kitchen, lines in by_kitchen.items():
         data = "".join(lines).encode()
         if hashlib.sha256(data).hexdigest() != checksums[kitchen]:
             raise EvalError(f"{archive}: {kitchen}'s episodes do not rebuild the file that was packed")
         path = directory / "episodes" / f"{kitchen}.jsonl"
+        rebuilt[path] = data
+        if path.exists() and _bytes_of(path) != data:  # checked for every kitchen before any is written
+            raise EvalError(
+                f"{path} holds other episodes than {archive} (the same evaluation, other results: another "
+                "machine's or code's floats); nothing unpacked: keep one, delete the other"
+            )
+    if not config_path.exists():
+        write_results_file(config_path, config_bytes)
+    for path, data in rebuilt.items():
         if not path.exists():
             write_results_file(path, data.decode(), checksum=True)
     return directory
+
+
+def _bytes_of(path: Path) -> bytes | None:
+    try:
+        return path.read_bytes()
+    except OSError:
+        return None

@@ -388,8 +388,12 @@ def cmd_table(args: argparse.Namespace) -> int:
         print("\n".join(job_commands(spec, args.preset, args.runs, sources)))
         return 0
     arguments.writable_folder(args.runs, "--runs")
-    if args.archive is not None:
-        arguments.writable_folder(args.archive, "--archive")  # (it exists: checked above)
+    if args.archive is not None and not os.access(args.archive, os.W_OK | os.X_OK):
+        # a read-only checkout assembles from its archive: only an evaluation it lacks needs writing
+        say(
+            f"--archive {args.archive}: read-only; the evaluations it keeps are used, one it lacks runs "
+            "in --runs and is not kept there"
+        )
     if assembles:
         arguments.writable_folder(args.out or spec.path.parent, "--out")
     # how every table of this command runs its jobs

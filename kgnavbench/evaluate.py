@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -608,7 +609,10 @@ def evaluate(
     write_results_file(directory / "summary.json", json.dumps(summary_json, indent=2) + "\n")
     write_results_file(directory / "table.md", format_summary(run.summary, describe(config)) + "\n")
     if packed is not None and not packed.is_file():
-        progress(f"packed {directory.name} into {pack_evaluation(directory, packed.parent)}")
+        if os.access(packed.parent, os.W_OK | os.X_OK):
+            progress(f"packed {directory.name} into {pack_evaluation(directory, packed.parent)}")
+        else:  # a read-only checkout's archive: used, never written
+            progress(f"not packed: {packed.parent} is read-only ({directory} keeps the evaluation)")
     return run
 
 

@@ -4,6 +4,7 @@ columns and caps, the oracle's 100/100, determinism and resuming a run."""
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -418,6 +419,16 @@ def test_a_packed_evaluation_rebuilds_its_results_byte_for_byte_and_resumes(tmp_
     assert (rebuilt / "episodes" / "FloorPlan1.jsonl").read_bytes() == (
         first.directory / "episodes" / "FloorPlan1.jsonl"
     ).read_bytes()
+    # the same evaluation with other results in the runs folder (another machine's floats): refused,
+    # nothing unpacked and nothing changed, whichever kitchen disagrees
+    episodes = rebuilt / "episodes" / "FloorPlan1.jsonl"
+    other_results = episodes.read_text().replace('"success": true', '"success": false', 1)
+    other_results = other_results if other_results != episodes.read_text() else episodes.read_text() + "\n"
+    episodes.write_text(other_results)
+    before = {p: p.read_bytes() for p in rebuilt.rglob("*") if p.is_file()}
+    with pytest.raises(EvalError, match="holds other episodes than .*nothing unpacked"):
+        unpack_evaluation(packed, tmp_path / "b" / "eval")
+    assert {p: p.read_bytes() for p in rebuilt.rglob("*") if p.is_file()} == before
     # another evaluation's folder of that name is refused, and left as it was
     other = tmp_path / "c" / "eval" / first.directory.name
     other.mkdir(parents=True)
@@ -435,6 +446,26 @@ def test_a_packed_evaluation_rebuilds_its_results_byte_for_byte_and_resumes(tmp_
     (first.directory / "episodes" / "FloorPlan1.jsonl").write_text("edited\n")
     with pytest.raises(EvalError, match="does not match its checksum"):
         pack_evaluation(first.directory, tmp_path / "edited")
+
+
+def test_an_evaluation_missing_from_a_read_only_archive_runs_and_says_it_is_not_kept(
+    tmp_path, floorplan1_tasks, monkeypatch
+):
+    """A read-only archive (a read-only checkout's tables/episodes) is never written: the evaluation
+    it lacks runs in the runs folder, and the one line that would say it was packed says it was not."""
+    import os
+
+    archive = tmp_path / "archive"
+    archive.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(
+        os, "access", lambda p, mode, *a, **k: False if Path(p) == archive else real_access(p, mode, *a, **k)
+    )
+    lines = []
+    config = EvalConfig("random_walk", kitchens=("FloorPlan1",), episodes_per_target=1, seed=3)
+    run = evaluate(config, tmp_path / "runs", progress=lines.append, archive=archive)
+    assert not any(archive.iterdir()) and (run.directory / "episodes" / "FloorPlan1.jsonl").is_file()
+    assert lines[-1] == f"not packed: {archive} is read-only ({run.directory} keeps the evaluation)"
 
 
 def test_an_evaluation_of_a_whole_split_packs_every_kitchen_of_it(tmp_path):

@@ -688,7 +688,7 @@ def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cach
     assert "min left" in whole.stdout  # while rows train, it is given
 
 
-def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path, capsys):
+def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path, capsys, monkeypatch):
     """`--train-only` trains the preset's runs and writes no table; `--trained ZOO` takes finished runs
     from a flat folder (as zoo/ ships them), matched by their options and not by the code that trained
     them, evaluates them without training and writes the table a plain `table` writes; `--archive`
@@ -779,6 +779,17 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     )
     assert out.count("packed ") == 2, out
     fresh = tmp_path / "fresh"
+    # a read-only checkout assembles from its archive (faked: the suite may run as root, whom no
+    # permission stops): the archive is used, never written
+    real_access = os.access
+
+    def access(path, mode, *args, **kwargs):
+        if mode & os.W_OK and Path(path).resolve() == archive.resolve():
+            return False
+        return real_access(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(os, "access", access)
+    kept = {p.name: p.read_bytes() for p in archive.iterdir()}
     assert (
         main(
             smoke
@@ -788,6 +799,11 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     )
     out = capsys.readouterr().out
     assert "agent-steps/s" not in out and "packed " not in out, out  # nothing evaluated, nothing packed again
+    assert (
+        f"--archive {archive}: read-only" in out
+        and {p.name: p.read_bytes() for p in archive.iterdir()} == kept
+    )
+    monkeypatch.setattr(os, "access", real_access)
     assert _numbers((fresh / "table1-smoke.md").read_text()) == _numbers(
         (shipped / "table1-smoke.md").read_text()
     )
