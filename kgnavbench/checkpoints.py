@@ -25,6 +25,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,7 +34,7 @@ import numpy as np
 import torch
 
 from .evaluate import evaluate
-from .files import atomic_write
+from .files import atomic_write, duration_text
 from .intervals import difference, standard_error, verdict
 from .jobs import eval_config, find_trained, only_rows, preset_rows, row_options, trains
 from .metrics import COLUMNS, KINDS
@@ -166,7 +167,21 @@ def run_lines(snapshot_run: SnapshotRun, progress=print, csv_path: Path | None =
     validation = validation_at(run_dir)
     best, last = _checkpoint_frames(run_dir / "best.pt"), _checkpoint_frames(run_dir / "last.pt")
     lines = []
-    for frames, result in snapshot_run.evaluations():
+    todo = len(snapshot_frames(run_dir))
+    progress(
+        f"{row.name} seed {seed}: {todo} snapshots of {run_dir.name}, {snapshot_run.episodes} episodes "
+        "per target each (those evaluated before are read back)"
+    )
+    evaluating: list[float] = []  # the seconds of each snapshot evaluated in this process
+    start = time.perf_counter()
+    for n, (frames, result) in enumerate(snapshot_run.evaluations(), 1):
+        took = time.perf_counter() - start
+        if result.steps:  # evaluated now, not read back
+            evaluating.append(took)
+        left = todo - n
+        eta = ""
+        if evaluating and left:
+            eta = f", about {duration_text(sum(evaluating) / len(evaluating) * left)} left for this run"
         val_sr, val_episodes = validation.get(frames, (math.nan, 0))
         line = {
             "row": row.name,
@@ -186,10 +201,14 @@ def run_lines(snapshot_run: SnapshotRun, progress=print, csv_path: Path | None =
             for c in CELLS
             if c.endswith("static") and f"{c}_sr" in line
         )
-        progress(f"{row.name} seed {seed} {frames:,} frames: validation {val_sr:.1f}%, {shown}")
+        progress(
+            f"{row.name} seed {seed} {frames:,} frames: validation {val_sr:.1f}%, {shown} "
+            f"({n}/{todo}, {took:.0f} s{eta})"
+        )
         lines.append(line)
         if csv_path is not None:
             merge_csv(csv_path, [line])
+        start = time.perf_counter()
     return lines
 
 

@@ -78,6 +78,7 @@ SEEN_VALIDATION_CAP = 100
 # the latest checkpoint within one standard error of the best so far (`within_one_standard_error`)
 BEST_RULE = "highest validation SR, ties to the later"
 FF_VALIDATION_SEED = 0xFFA3C
+ESTIMATE_AFTER = 20.0  # seconds of training before the run says how long the rest will take
 METRICS = (
     "frames",
     "seconds",  # training time of the whole run, the sessions before a resume included
@@ -595,8 +596,17 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
     keep = options.keep_every
     next_keep = (trainer.frames // keep + 1) * keep if keep else None
     t0, f0 = time.perf_counter(), trainer.frames
+    estimated = False  # long work says how long: once, after the first ESTIMATE_AFTER seconds
     while trainer.frames < run.frames:
         trainer.update()
+        if not estimated and time.perf_counter() - t0 >= ESTIMATE_AFTER and trainer.frames < run.frames:
+            estimated = True
+            rate = (trainer.frames - f0) / (time.perf_counter() - t0)
+            progress(
+                f"  {rate:,.0f} frames/s over the first {trainer.frames - f0:,} frames: about "
+                f"{duration_text((run.frames - trainer.frames) / rate)} to go at that rate, validations "
+                "excluded (later episodes are longer; the progress lines give the ETA as it goes)"
+            )
         if next_keep is not None and trainer.frames >= next_keep and ranks.main:
             next_keep = (trainer.frames // keep + 1) * keep
             snapshots = run.directory / "snapshots"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -826,6 +827,19 @@ def test_tse_replays_from_the_stored_lstm_state(tmp_path, floorplan1_tasks):
         seq.hidden = None
         zeros, _ = train.sequence_pass(trainer.model, trainer.space, seq, None)
     assert not torch.allclose(stored, zeros)
+
+
+def test_a_run_says_how_long_the_rest_will_take(tmp_path, floorplan1_tasks, monkeypatch):
+    """Long work says so: after its first ESTIMATE_AFTER seconds (here none) a run prints its rate and
+    how long the rest takes at it, once."""
+    monkeypatch.setattr(train, "ESTIMATE_AFTER", 0.0)
+    lines = []
+    run = runs.Run(tmp_path, "test", 2000, 0, ("FloorPlan1",), progress=lines.append)
+    train.learn(run, tiny_options(), models.ModelConfig(lstm=32, hidden=32))
+    said = [line for line in lines if "frames/s over the first" in line]
+    assert len(said) == 1 and re.search(
+        r"over the first [\d,]+ frames: about \S+.* to go at that rate", said[0]
+    )
 
 
 def test_a_learner_masters_a_small_task(tmp_path):
