@@ -5,10 +5,11 @@ trains it, for a few million frames, validation and checkpoints included, its wa
     python benchmarks/train_profile.py --rows "+KG+Attention" --frames 1000000
     python benchmarks/train_profile.py --beside     # with a second job on the other core
 
-Each row runs `train.learn` (the plugin's own train hook) on the preset's options (one thread under the
-paper preset), its training kitchens and seed 0, in a temporary run directory, with `--frames` as the
-run's frames: the same run as `kgnavbench train --method M --preset paper --set <row options> --frames N`
-(the start curriculum and IL's share scale with the frames, as they do there). Timers wrap the package's
+Each row runs `train.learn` (what the learned plugins' train hooks call) on the preset's options (one
+thread under the paper preset), its training kitchens and seed 0, in a temporary run directory, with
+`--frames` as the run's frames: the same run as `kgnavbench train --method M --preset paper --set
+<row options> --frames N` (the start curriculum and IL's share scale with the frames, as they do
+there). Timers wrap the package's
 own functions and methods from outside (nothing is copied); each second of wall time goes to the
 innermost part it is spent in, and validation and checkpoints keep everything under them:
 
@@ -36,6 +37,7 @@ from __future__ import annotations
 import argparse
 import functools
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -177,8 +179,9 @@ def main() -> None:
     parser.add_argument("--beside", action="store_true", help="a second copy of the row runs meanwhile")
     parser.add_argument("--quiet-copy", action="store_true", help=argparse.SUPPRESS)  # the --beside copy
     args = parser.parse_args()
-    if args.quiet_copy:  # ends with the measured process, killed or not
+    if args.quiet_copy:  # ends with the measured process, killed or not, its temporary folder removed
         end_with_parent(os.getppid())
+        signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     names = [r for r in args.rows.split(",") if r]
     print(
         f"preset {args.preset}, {args.frames:,} frames per row, seed 0, torch {torch.__version__}, "
@@ -192,13 +195,18 @@ def main() -> None:
             command += ["--frames", str(args.frames * 2), "--quiet-copy"]  # outlasts the measured run
             other = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             time.sleep(20)  # past its start-up, into its training
+            if other.poll() is not None:
+                raise SystemExit(f"the second copy of {name} ended at once (exit {other.returncode})")
         try:
             with tempfile.TemporaryDirectory() as tmp:
                 seconds, wall, trained = profile(method, options, args.frames, kitchens, Path(tmp))
         finally:
             if other is not None:
-                other.kill()
+                beside_to_the_end = other.poll() is None
+                other.terminate()
                 other.wait()
+        if other is not None and not beside_to_the_end:
+            print(f"note: the second copy of {name} ended before the measured run did")
         if args.quiet_copy:
             continue
         training = wall - seconds.get("set-up", 0.0)
@@ -212,5 +220,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    main()
+    main()  # (one thread: `learn` sets the preset's `threads`)

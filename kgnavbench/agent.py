@@ -175,10 +175,13 @@ class Model:
 def packed_order(lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """How torch packs sequences of these lengths (N,): the order of the sequences (longest first,
     ties in their order), the batch size at each step, and each packed row's (step, sequence)."""
-    order = np.argsort(-np.asarray(lengths), kind="stable")
-    live = np.arange(int(lengths.max()))[:, None] < np.asarray(lengths)[order][None]  # (L, N) sorted
+    lengths = np.asarray(lengths, np.int64)
+    if not len(lengths) or lengths.max() < 1:
+        raise ValueError("packed sequences need at least one step")
+    order = np.argsort(-lengths, kind="stable")
+    live = np.arange(int(lengths.max()))[:, None] < lengths[order][None]  # (L, N) sorted
     steps, ranks = np.nonzero(live)  # time-major, the sequences in sorted order within a step
-    return order, live.sum(1), np.stack([steps, order[ranks]])
+    return order, live.sum(1).astype(np.int64), np.stack([steps, order[ranks]])
 
 
 def run_episodes(model: Model, space: StateSpace, targets, starts, cap: int, seed: int, scene=None):

@@ -12,6 +12,8 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import sys
+import time
 from pathlib import Path
 
 from .files import atomic_write, checksum_matches, first_line, write_with_checksum
@@ -113,8 +115,9 @@ def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
     kitchen's results with their checksums, each checked against the sha256 it was packed with. Files
     already there are kept, never overwritten: a config.json of the same evaluation (its identity; the
     git revision, machine and plugin path it records may differ) stays, another one is refused; a
-    kitchen's results file that holds the archive's episodes stays, one that holds others is refused
-    (nothing is unpacked: the runs folder and the archive disagree, and neither is silently preferred).
+    kitchen's results file that holds the archive's episodes stays; an intact one (its checksum proves
+    it) that holds others is refused (nothing is unpacked: the runs folder and the archive disagree,
+    and neither is silently preferred); a damaged one is set aside, as `evaluate` does, and replaced.
     A later evaluation of that config then resumes from them."""
     import csv
     import lzma
@@ -166,7 +169,10 @@ def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
             raise EvalError(f"{archive}: {kitchen}'s episodes do not rebuild the file that was packed")
         path = directory / "episodes" / f"{kitchen}.jsonl"
         rebuilt[path] = data
-        if path.exists() and _bytes_of(path) != data:  # checked for every kitchen before any is written
+        there = _bytes_of(path)
+        # checked for every kitchen before any is written: an intact file (its checksum proves it is
+        # what was written) with other episodes is another result of the same evaluation
+        if there is not None and there != data and checksum_matches(path, there):
             raise EvalError(
                 f"{path} holds other episodes than {archive} (the same evaluation, other results: another "
                 "machine's or code's floats); nothing unpacked: keep one, delete the other"
@@ -174,8 +180,18 @@ def unpack_evaluation(archive: Path, eval_root: Path) -> Path:
     if not config_path.exists():
         write_results_file(config_path, config_bytes)
     for path, data in rebuilt.items():
-        if not path.exists():
-            write_results_file(path, data.decode(), checksum=True)
+        there = _bytes_of(path)
+        if there == data and checksum_matches(path, there):
+            continue  # the archive's episodes, intact: kept
+        if there is not None and there != data:
+            # damaged (its checksum does not prove it, checked above): set aside, as evaluate does
+            aside = path.with_name(f"{path.name}.corrupt-{int(time.time())}")
+            path.rename(aside)
+            print(
+                f"kgnavbench: {path} is damaged; moved to {aside.name}, unpacked from {archive}",
+                file=sys.stderr,
+            )
+        write_results_file(path, data.decode(), checksum=True)  # (its checksum too, where it lacked one)
     return directory
 
 

@@ -178,7 +178,7 @@ def run_lines(snapshot_run: SnapshotRun, progress=print, csv_path: Path | None =
         took = time.perf_counter() - start
         if result.steps:  # evaluated now, not read back
             evaluating.append(took)
-        left = todo - n
+        left = max(todo - n, 0)  # (an unfinished run may keep a snapshot meanwhile)
         eta = ""
         if evaluating and left:
             eta = f", about {duration_text(sum(evaluating) / len(evaluating) * left)} left for this run"
@@ -203,7 +203,7 @@ def run_lines(snapshot_run: SnapshotRun, progress=print, csv_path: Path | None =
         )
         progress(
             f"{row.name} seed {seed} {frames:,} frames: validation {val_sr:.1f}%, {shown} "
-            f"({n}/{todo}, {took:.0f} s{eta})"
+            f"({n}/{max(todo, n)}, {took:.0f} s{eta})"
         )
         lines.append(line)
         if csv_path is not None:

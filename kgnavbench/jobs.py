@@ -45,6 +45,7 @@ from .kitchens import KITCHEN_NAMES
 from .plugins import PluginError, load_plugin
 from .runs import (
     TrainError,
+    imported_training_code_sha256,
     load_checkpoint,
     run_directory,
     run_record,
@@ -590,19 +591,26 @@ def _check_ray_port(address: str, seconds: float = 5.0) -> None:
 
 def node_environment() -> dict[str, str]:
     """What must be the same on every node as on the driver, or a job's floats (or its code) are not
-    the table's: Python's version, torch's, and kgnavbench's revision (files.git_revision)."""
-    return {"Python": platform.python_version(), "torch": torch.__version__, "kgnavbench": git_revision()}
+    the table's: Python's version, torch's, kgnavbench's revision (files.git_revision) and the sha256
+    of its training code as imported (a pip install outside a checkout has no revision; a "-dirty"
+    one says nothing of which edits)."""
+    return {
+        "Python": platform.python_version(),
+        "torch": torch.__version__,
+        "kgnavbench": git_revision(),
+        "training code": imported_training_code_sha256()[:12],
+    }
 
 
 def environment_problems(driver: dict[str, str], nodes: dict[str, dict[str, str]]) -> str | None:
-    """One sentence naming the first node (by host) whose `node_environment` differs from the driver's
+    """One sentence naming the first node (by name) whose `node_environment` differs from the driver's
     and how; None when every node's is the driver's."""
-    for host, theirs in sorted(nodes.items()):
+    for name, theirs in sorted(nodes.items()):
         differ = [
             f"{k} {theirs.get(k, '(none)')} (here {v})" for k, v in driver.items() if theirs.get(k) != v
         ]
         if differ:
-            return f"node {host} runs {', '.join(differ)}"
+            return f"node {name} runs {', '.join(differ)}"
     return None
 
 
@@ -610,28 +618,37 @@ RAY_PROBE_SECONDS = 25.0  # how long the driver waits for every node's environme
 
 
 def _check_ray_nodes(ray, address: str, head: str) -> None:
-    """Ask every live node, in a task pinned to it that takes no CPU (so a busy node answers too), for its
-    `node_environment`; a node that differs from the driver, or does not answer, is a TableError.
-    (A node that joins later is not asked.)"""
+    """Ask every live node that can run a job (one with a CPU), in a task pinned to it that takes no
+    CPU (so a busy node answers too), for its `node_environment`; a node that differs from the
+    driver's, fails, or does not answer in RAY_PROBE_SECONDS is named in a TableError. (A node that
+    joins later is not asked.)"""
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-    nodes = [n for n in ray.nodes() if n["Alive"]]
+    nodes = [n for n in ray.nodes() if n["Alive"] and n.get("Resources", {}).get("CPU", 0) > 0]
     probe = ray.remote(num_cpus=0, max_retries=0)(node_environment)
     refs = [
         probe.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote()
         for n in nodes
     ]
-    try:
-        reports = ray.get(refs, timeout=RAY_PROBE_SECONDS)
-    except Exception as e:  # noqa: BLE001 - Ray's time-out and a dead node's errors alike
-        raise TableError(
-            f"--ray {address}: not every node of the cluster at {head} answered within "
-            f"{RAY_PROBE_SECONDS:.0f} s ({type(e).__name__}: {first_line(e)}); check `ray status`"
-        ) from e
-    hosts = {
-        f"{n.get('NodeManagerHostname', '?')} ({n['NodeManagerAddress']})": r for n, r in zip(nodes, reports)
-    }
-    problem = environment_problems(node_environment(), hosts)
+
+    def name(n: dict) -> str:
+        return f"{n.get('NodeManagerHostname', '?')} ({n['NodeManagerAddress']}, {n['NodeID'][:8]})"
+
+    ready, _ = ray.wait(refs, num_returns=len(refs), timeout=RAY_PROBE_SECONDS)
+    reports = {}
+    for n, ref in zip(nodes, refs):
+        if ref not in ready:
+            raise TableError(
+                f"--ray {address}: node {name(n)} of the cluster at {head} did not say what it runs within "
+                f"{RAY_PROBE_SECONDS:.0f} s; check `ray status`"
+            )
+        try:
+            reports[name(n)] = ray.get(ref)
+        except Exception as e:  # noqa: BLE001 - whatever the node raised (kgnavbench missing there, ...)
+            raise TableError(
+                f"--ray {address}: node {name(n)} cannot run kgnavbench ({type(e).__name__}: {first_line(e)})"
+            ) from e
+    problem = environment_problems(node_environment(), reports)
     if problem:
         raise TableError(
             f"--ray {address}: {problem}; every node needs the driver's Python, torch and kgnavbench "
@@ -714,7 +731,7 @@ def run_jobs_on_ray(
         )
     try:
         _check_ray_nodes(ray, address, head)
-    except TableError:
+    except BaseException:
         ray.shutdown()
         raise
     watchdog = _watch_head(head, shlex.join(["kgnavbench", *sys.argv[1:]]))

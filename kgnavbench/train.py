@@ -602,11 +602,12 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
         if not estimated and time.perf_counter() - t0 >= ESTIMATE_AFTER and trainer.frames < run.frames:
             estimated = True
             rate = (trainer.frames - f0) / (time.perf_counter() - t0)
-            progress(
-                f"  {rate:,.0f} frames/s over the first {trainer.frames - f0:,} frames: about "
-                f"{duration_text((run.frames - trainer.frames) / rate)} to go at that rate, validations "
-                "excluded (later episodes are longer; the progress lines give the ETA as it goes)"
-            )
+            if rate > 0:
+                progress(
+                    f"  {rate:,.0f} frames/s over the first {trainer.frames - f0:,} frames: about "
+                    f"{duration_text((run.frames - trainer.frames) / rate)} to go at that rate (later "
+                    "episodes are longer; the progress lines give the ETA as it goes)"
+                )
         if next_keep is not None and trainer.frames >= next_keep and ranks.main:
             next_keep = (trainer.frames // keep + 1) * keep
             snapshots = run.directory / "snapshots"

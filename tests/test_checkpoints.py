@@ -53,7 +53,8 @@ def test_each_snapshot_is_one_line_and_the_rules_replay_the_trainers_picks(train
     assert f"{len(snapshots)} snapshots of 1 runs" in printed
     # long work says so: what it will evaluate, then each snapshot's time and what is left
     assert f"LSTM A3C seed 0: {len(snapshots)} snapshots of {run.name}, 1 episodes per target" in printed
-    assert re.search(rf"\(1/{len(snapshots)}, \d+ s, about \S.* left for this run\)", printed), printed
+    # (read back, when another test evaluated them first: no time left to say)
+    assert re.search(rf"\(1/{len(snapshots)}, \d+ s(, about \S.* left for this run)?\)", printed), printed
     assert re.search(rf"\({len(snapshots)}/{len(snapshots)}, \d+ s\)", printed), printed
     with out.open() as f:
         assert tuple(csv.DictReader(f).fieldnames) == FIELDS

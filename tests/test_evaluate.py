@@ -419,16 +419,23 @@ def test_a_packed_evaluation_rebuilds_its_results_byte_for_byte_and_resumes(tmp_
     assert (rebuilt / "episodes" / "FloorPlan1.jsonl").read_bytes() == (
         first.directory / "episodes" / "FloorPlan1.jsonl"
     ).read_bytes()
-    # the same evaluation with other results in the runs folder (another machine's floats): refused,
-    # nothing unpacked and nothing changed, whichever kitchen disagrees
+    # the same evaluation with other results in the runs folder, intact (another machine's floats):
+    # refused, nothing unpacked and nothing changed
     episodes = rebuilt / "episodes" / "FloorPlan1.jsonl"
-    other_results = episodes.read_text().replace('"success": true', '"success": false', 1)
-    other_results = other_results if other_results != episodes.read_text() else episodes.read_text() + "\n"
-    episodes.write_text(other_results)
+    archived = episodes.read_bytes()
+    other_results = archived.replace(b'"path_length": ', b'"path_length": 1', 1)
+    assert other_results != archived
+    from kgnavbench.files import write_with_checksum
+
+    write_with_checksum(episodes, other_results)
     before = {p: p.read_bytes() for p in rebuilt.rglob("*") if p.is_file()}
     with pytest.raises(EvalError, match="holds other episodes than .*nothing unpacked"):
         unpack_evaluation(packed, tmp_path / "b" / "eval")
     assert {p: p.read_bytes() for p in rebuilt.rglob("*") if p.is_file()} == before
+    # damaged (its checksum does not prove it): set aside, as evaluate does, and the archive's written
+    episodes.write_bytes(b"half a line")
+    assert unpack_evaluation(packed, tmp_path / "b" / "eval") == rebuilt
+    assert episodes.read_bytes() == archived and len(list(episodes.parent.glob("*.corrupt-*"))) == 1
     # another evaluation's folder of that name is refused, and left as it was
     other = tmp_path / "c" / "eval" / first.directory.name
     other.mkdir(parents=True)
