@@ -1,4 +1,4 @@
-"""Stage 20 — archives: an evaluation's results files, and a finished evaluation kept in git. Each
+"""Stage 22 — archives: an evaluation's results files, and a finished evaluation kept in git. Each
 kitchen's results are JSON lines whose fields have the types of `RESULT_TYPES`, written atomically
 with their sha256 beside them (`write_results_file`). `pack_evaluation` writes a finished
 evaluation's config.json and every episode as one CSV, with each kitchen file's sha256, into one xz'd

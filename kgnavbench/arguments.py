@@ -94,6 +94,14 @@ def seed(text: str) -> int:
     return integer_in(text, 0, MAX_SEED)
 
 
+def seed_list(text: str) -> tuple[int, ...]:
+    """'0,1,2' -> (0, 1, 2): distinct seeds."""
+    seeds = tuple(seed(part.strip()) for part in text.split(","))
+    if len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"{text!r}: a seed appears twice")
+    return seeds
+
+
 def writable_folder(path: Path, what: str) -> None:
     """Make the folder (and its parents) or say in one line why it cannot be: before any work starts,
     not after minutes of training."""
@@ -373,6 +381,13 @@ def train_arguments(sub) -> argparse.ArgumentParser:
         help="frames (agent steps) to train (default: the preset's, else 10,000,000)",
     )
     seed_option(p, "the run: its weights, agents and episodes")
+    p.add_argument(
+        "--seeds",
+        type=seed_list,
+        metavar="S,S,...",
+        help="train these seeds in one process, each a run of its own, their networks stacked into one "
+        "(faster than one by one at the same cores: docs/speed.md); one seed is --seed's run",
+    )
     p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")
     runs_option(p)
     p.add_argument("--record", type=Path, metavar="FILE.rrd", help="record the training curves with rerun")
@@ -652,6 +667,10 @@ def train_problems(args: argparse.Namespace) -> list[str]:
         problems.append("--spec names where --preset comes from: give --preset too")
     _recording(problems, args)
     _creatable_folder(problems, args.runs, "--runs")
+    if args.seeds is not None and args.seed:
+        problems.append("--seeds names every seed to train: not with --seed")
+    if args.seeds is not None and len(args.seeds) > 1 and args.record is not None:
+        problems.append("--record records one run's training curves: not with several --seeds")
     return problems
 
 

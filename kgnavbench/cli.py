@@ -11,7 +11,7 @@
                     [--seed S] [--runs DIR] [--run TRAIN_RUN [--checkpoint best|last]] [--json]
                     [--record FILE.rrd] [--record-episodes N] [--record-steps N] [--device auto|cpu|cuda]
     kgnavbench train --method NAME [--preset quick|paper [--spec FILE]] [--set KEY=VALUE] [--frames N]
-                     [--seed S] [--kitchens A,B] [--runs DIR] [--record FILE.rrd] [--device auto|cpu|cuda]
+                     [--seed S | --seeds S,S,...] [--kitchens A,B] [--runs DIR] [--record FILE.rrd] [--device auto|cpu|cuda]
     kgnavbench table [--preset smoke|quick|paper] [--spec FILE] [--runs DIR] [--out DIR] [--workers N]
                      [--jobs | --job N | --ray ADDRESS] [--trained DIR | --train-only] [--row NAME ...]
                      [--device auto|cpu|cuda]
@@ -257,7 +257,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
-    from .runs import train_method
+    from .runs import train_seeds
 
     options = parse_options(args.set or [])
     kitchens = arguments.kitchen_list(args.kitchens) if args.kitchens is not None else ()
@@ -270,11 +270,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         frames = args.frames if args.frames is not None else preset.frames
         kitchens = kitchens or preset.train_kitchens
     arguments.writable_folder(args.runs, "--runs")
-    directory = train_method(
+    directories = train_seeds(
         args.method,
         options,
         frames=frames,
-        seed=args.seed,
+        seeds=args.seeds or (args.seed,),
         kitchens=kitchens,
         runs_dir=args.runs,
         progress=lambda line: print(line, flush=True),
@@ -283,12 +283,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.record is not None:
         from .record import record_training
 
-        done = record_training(directory / "metrics.csv", args.record)
+        done = record_training(directories[0] / "metrics.csv", args.record)
         print(f"recorded {done['rows']} rows of training curves to {args.record}")
     from .distributed import from_env
 
     if from_env().main:  # (torchrun: one line, from rank 0)
-        print(directory)  # the last line: the run directory, for `kgnavbench eval --run`
+        print("\n".join(map(str, directories)))  # the last lines: the run directories, for `eval --run`
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Stage 21 — evaluate: the protocol. Fixed episodes through the environment, per-episode results,
+"""Stage 23 — evaluate: the protocol. Fixed episodes through the environment, per-episode results,
 and the metrics of Table I.
 
 Columns of Table I (DESIGN.md):

@@ -1,4 +1,4 @@
-"""Stage 26 — jobs: a table's jobs (one row for one seed each) and the engines that run them.
+"""Stage 28 — jobs: a table's jobs (one row for one seed each) and the engines that run them.
 
 A `Job` trains (or finds, or resumes) one row's run for one seed and evaluates its checkpoint under the
 preset's rule (`run_row`); `execute` runs it in this process and keeps what the table needs
@@ -189,11 +189,7 @@ def zoo_listing(zoo: Path, spec: TableSpec) -> str:
             kitchens = training_kitchens(preset.train_kitchens)
             # the job's record as the trainer builds it, on the run's own ranks and device
             record = run_record(plugin, plugin.config(row_options(preset, row)), preset.frames, 0, kitchens)
-            wanted[key] = record | {
-                "seed": config.get("seed"),
-                "world_size": config.get("world_size"),
-                "device": config.get("device"),
-            }
+            wanted[key] = record | {k: config.get(k) for k in ("seed", "world_size", "device")}
         return wanted[key]
 
     lines = []
@@ -223,10 +219,8 @@ def zoo_listing(zoo: Path, spec: TableSpec) -> str:
         cells = f"| `{folder.name}` | {name} | {presets} | {config['seed']} | {finished['frames']:,} | "
         cells += f"{best:,} | {last} |"
         lines.append(((row_order, config["seed"], folder.name), cells))
-    head = (
-        "| run | row | presets | seed | frames | best.pt from | last.pt |\n|---|---|---|---:|---:|---:|---|\n"
-    )
-    return head + "".join(cells + "\n" for _, cells in sorted(lines))
+    head = "| run | row | presets | seed | frames | best.pt from | last.pt |\n"
+    return head + "|---|---|---|---:|---:|---:|---|\n" + "".join(cells + "\n" for _, cells in sorted(lines))
 
 
 def write_zoo_listing(zoo: Path, spec: TableSpec) -> bool:
@@ -567,10 +561,7 @@ def _ray_task(job: Job, title: str, attempts: str, cwd: str) -> JobOutcome:
 
 
 def _attempts(path: Path) -> int:
-    try:
-        return len(path.read_text().splitlines())
-    except OSError:
-        return 0
+    return len(path.read_text().splitlines()) if path.is_file() else 0
 
 
 def _check_ray_port(address: str, seconds: float = 5.0) -> None:

@@ -258,7 +258,7 @@ class SubtargetSampler:
         self.slot_length[idx, slot] = length
         self.slot_goal[idx, slot] = after[idx]
         # where the relabelled episode begins: the window's first step, or the step after its last
-        # Stop (`train.relabelled_windows`); this step is no Stop, so that step lies in the window
+        # Stop (`learning.relabelled_windows`); this step is no Stop, so that step lies in the window
         position = np.arange(self.window)
         stops = (self.slot_action[idx, slot] == STOP) & (position >= self.window - length[:, None])
         last_stop = np.where(stops.any(1), self.window - 1 - np.argmax(stops[:, ::-1], 1), -1)

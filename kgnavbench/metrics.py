@@ -1,4 +1,4 @@
-"""Stage 18 — metrics: one episode's record and Table I's metrics over many.
+"""Stage 20 — metrics: one episode's record and Table I's metrics over many.
 
 An evaluation's episodes are EpisodeResult records (kitchen, target, column, kind, success, path
 lengths, collisions, what the last view showed). `summarize` groups them per Table I cell (column and

@@ -1,4 +1,4 @@
-"""Stage 22 — own_policy: your own policy on Table I's fixed episodes, without a plugin file.
+"""Stage 24 — own_policy: your own policy on Table I's fixed episodes, without a plugin file.
 
 `evaluate_policy(policy)` takes a callable on batched observations, or any object with
 Stable-Baselines3's `predict` (a trained SB3 model, recurrent ones included), and runs it through the

@@ -1,4 +1,4 @@
-"""Stage 17 — policy: a trained checkpoint as a plugin policy, on what the env shows every plugin.
+"""Stage 19 — policy: a trained checkpoint as a plugin policy, on what the env shows every plugin.
 
 `load_policy(checkpoint)` is the learned plugins' `make_policy`. The policy reads only the
 observations (`features` and `target_features`, the frozen encoder's standardized features of the view

@@ -28,6 +28,22 @@ from .vecenv import NavigationVectorEnv, StateSpace
 
 
 @dataclass
+class Forward:
+    """A forward pass `Actors.steps` needs: `inputs` are `Model.__call__`'s arguments less the graph
+    (space, states, goals, hidden, scene, history). "step": every agent, at a step or for the bootstrap
+    value after the last; "cut": the agents a time limit cut, for gamma V of the state they reached."""
+
+    kind: str
+    inputs: tuple
+
+
+def answer(model: Model, request: Forward, graph):
+    """A `Forward` answered by one model: (logits, value, hidden, extras)."""
+    space, states, goals, hidden, scene, history = request.inputs
+    return model(space, states, goals, hidden, graph, scene, history)
+
+
+@dataclass
 class Rollout:
     """n steps of B agents as acting saw them (`Actors.collect`); the learning pass replays them."""
 
@@ -94,6 +110,20 @@ class Actors:
         (totals) and `per_target` (2, targets: episodes, successes per target row); the ended ones' TSE
         windows come with the rollout, and its agent's next episode (starting at most `reach` actions
         from its destination) begins at the next step."""
+        steps = self.steps(model, reach, stats, per_target)
+        with torch.no_grad():
+            request = next(steps)
+            while True:
+                try:
+                    request = steps.send(answer(model, request, graph))
+                except StopIteration as done:
+                    return done.value
+
+    def steps(self, model: Model, reach: int | None, stats: dict, per_target: np.ndarray):
+        """`collect` as a generator that yields each forward pass it needs (a `Forward`) and is sent
+        the model's answer, (logits, value, hidden, extras); it returns the Rollout. Several seeds'
+        actors step in lock-step through it, their forward passes stacked into one
+        (kgnavbench/stacking.py); `collect` answers each with the model itself."""
         opts, nav, space = self.opts, self.nav, self.space
         n, b = opts.n_steps, nav.n
         states = np.zeros((n, b), np.int64)
@@ -109,73 +139,74 @@ class Actors:
         windows = []
         start_hidden = hidden = detached(self.hidden)
         scene = nav.kitchen if self.ff else None
-        with torch.no_grad():
-            for t in range(n):
-                states[t], targets[t] = nav.state, nav.target
+        for t in range(n):
+            states[t], targets[t] = nav.state, nav.target
+            if self.ff:
+                histories[t] = self.history
+            goals = space.destination[nav.target]
+            before_hidden = hidden
+            logits, value, hidden, _ = yield Forward(
+                "step", (space, nav.state, goals, hidden, scene, self.history)
+            )
+            logits_seen[t], values_seen[t] = logits, value
+            probs = F.softmax(logits, -1)
+            action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
+            a = action.cpu().numpy()
+            actions[t] = a
+            before = nav.state.copy()
+            _, r, terminated, truncated, infos = self.envs.step(a)
+            reached[t] = nav.state
+            if opts.wrong_stop_penalty:
+                r = r - opts.wrong_stop_penalty * ((a == STOP) & ~nav.success)
+            done = terminated | truncated
+            stats["reward"] += float(r.sum())
+            rewards[t], dones[t] = r, done
+            cut = np.flatnonzero(truncated & ~terminated)
+            if len(cut):
+                # a time limit is no end of the task: the return goes on past the cap, so the
+                # last step's reward gains gamma V(the state it reached), as Stable-Baselines3 does
+                # (the episode still ends here: nothing after it belongs to it)
+                truncations[t, cut] = True
+                history = None
                 if self.ff:
-                    histories[t] = self.history
-                goals = space.destination[nav.target]
-                before_hidden = hidden
-                logits, value, hidden, _ = model(space, nav.state, goals, hidden, graph, scene, self.history)
-                logits_seen[t], values_seen[t] = logits, value
-                probs = F.softmax(logits, -1)
-                action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
-                a = action.cpu().numpy()
-                actions[t] = a
-                before = nav.state.copy()
-                _, r, terminated, truncated, infos = self.envs.step(a)
-                reached[t] = nav.state
-                if opts.wrong_stop_penalty:
-                    r = r - opts.wrong_stop_penalty * ((a == STOP) & ~nav.success)
-                done = terminated | truncated
-                stats["reward"] += float(r.sum())
-                rewards[t], dones[t] = r, done
-                cut = np.flatnonzero(truncated & ~terminated)
-                if len(cut):
-                    # a time limit is no end of the task: the return goes on past the cap, so the
-                    # last step's reward gains gamma V(the state it reached), as Stable-Baselines3 does
-                    # (the episode still ends here: nothing after it belongs to it)
-                    truncations[t, cut] = True
-                    history = None
-                    if self.ff:
-                        history = np.concatenate([self.history[cut, 1:], nav.state[cut, None]], 1)
-                    _, after, _, _ = model(
+                    history = np.concatenate([self.history[cut, 1:], nav.state[cut, None]], 1)
+                _, after, _, _ = yield Forward(
+                    "cut",
+                    (
                         space,
                         nav.state[cut],
                         space.destination[nav.target[cut]],
                         rows_of(hidden, cut),
-                        graph,
                         None if scene is None else scene[cut],
                         history,
-                    )
-                    rewards[t, cut] += opts.gamma * after.cpu().numpy()
-                if opts.tse:
-                    candidate = (a != STOP) & (
-                        space.objects[nav.state] & self.subtarget_types[nav.target]
-                    ).any(1)
-                    taken = probs.gather(1, action[:, None]).squeeze(1).cpu().numpy()
-                    lstm_state = None
-                    if before_hidden is not None:
-                        lstm_state = torch.stack(before_hidden, 1).float().cpu().numpy()
-                    self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng, lstm_state)
-                self.tick += 1
-                finished = np.flatnonzero(done)
-                if len(finished):
-                    ended = infos["final_info"]
-                    stats["episodes"] += len(finished)
-                    stats["successes"] += int(ended["success"][finished].sum())
-                    np.add.at(per_target[0], nav.target[finished], 1.0)
-                    np.add.at(per_target[1], nav.target[finished], ended["success"][finished])
-                    stats["returns"] += float(ended["episode_return"][finished].sum())
-                    if opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
-                        windows += self.tse.finish(finished, self.tick)
-                    self.envs.reset(options={"reset_mask": done, "reach": reach})
-                hidden = keep_rows(hidden, model.tensor(~done).float())
-                if self.ff:
-                    self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
-                    self.history[finished] = nav.state[finished, None]
-            goals = space.destination[nav.target]
-            _, bootstrap, _, _ = model(space, nav.state, goals, hidden, graph, scene, self.history)
+                    ),
+                )
+                rewards[t, cut] += opts.gamma * after.cpu().numpy()
+            if opts.tse:
+                candidate = (a != STOP) & (space.objects[nav.state] & self.subtarget_types[nav.target]).any(1)
+                taken = probs.gather(1, action[:, None]).squeeze(1).cpu().numpy()
+                lstm_state = None
+                if before_hidden is not None:
+                    lstm_state = torch.stack(before_hidden, 1).float().cpu().numpy()
+                self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng, lstm_state)
+            self.tick += 1
+            finished = np.flatnonzero(done)
+            if len(finished):
+                ended = infos["final_info"]
+                stats["episodes"] += len(finished)
+                stats["successes"] += int(ended["success"][finished].sum())
+                np.add.at(per_target[0], nav.target[finished], 1.0)
+                np.add.at(per_target[1], nav.target[finished], ended["success"][finished])
+                stats["returns"] += float(ended["episode_return"][finished].sum())
+                if opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
+                    windows += self.tse.finish(finished, self.tick)
+                self.envs.reset(options={"reset_mask": done, "reach": reach})
+            hidden = keep_rows(hidden, model.tensor(~done).float())
+            if self.ff:
+                self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
+                self.history[finished] = nav.state[finished, None]
+        goals = space.destination[nav.target]
+        _, bootstrap, _, _ = yield Forward("step", (space, nav.state, goals, hidden, scene, self.history))
         self.hidden = hidden
         return Rollout(
             states, targets, actions, reached, rewards, dones, truncations, histories, scene, start_hidden,

@@ -11,7 +11,9 @@ shipped methods is `kgnavbench.train.learn`.
 from __future__ import annotations
 
 import ast
+import contextlib
 import csv
+import dataclasses
 import functools
 import hashlib
 import io
@@ -189,6 +191,9 @@ class Run:
     kitchens: tuple[str, ...]  # training kitchens (their seen targets only)
     progress: Callable[[str], None] = print
     device: str = "cpu"  # the torch device it trains on (kgnavbench/device.py)
+    # `train --seeds`: the runs of the row's other seeds, trained in the same process as this one
+    # (`train.learn`: one network with a seed dimension, kgnavbench/stacking.py)
+    stacked: tuple[Run, ...] = ()
 
 
 def training_kitchens(kitchens=()) -> tuple[str, ...]:
@@ -208,7 +213,7 @@ def training_kitchens(kitchens=()) -> tuple[str, ...]:
 # run through the state-graph cache, which is keyed by their own fingerprint)
 TRAINING_CODE = (
     "graph.py", "tasks.py", "encoder.py", "env.py", "vecenv.py", "runs.py", "losses.py", "models.py",
-    "agent.py", "rollout.py", "train.py",
+    "agent.py", "rollout.py", "learning.py", "stacking.py", "train.py",
 )  # fmt: skip
 
 
@@ -241,9 +246,11 @@ def imported_training_code_sha256() -> str:
 
 
 def run_record(
-    plugin, config, frames: int, seed: int, kitchens: tuple[str, ...], device: str = "cpu"
+    plugin, config, frames: int, seed: int, kitchens: tuple[str, ...], device: str = "cpu", stacked=()
 ) -> dict:
-    """What decides a run: its hash names the run directory."""
+    """What decides a run: its hash names the run directory. `stacked`: the seeds trained in one
+    process with it (`train --seeds`), recorded as torchrun's world_size is (their floats are not a
+    single-seed run's); a single seed's record has no such field, so its name is today's."""
     return {
         "method": plugin.name,
         "options": json.loads(json.dumps(asdict(config))),
@@ -254,6 +261,7 @@ def run_record(
         "kitchens": list(kitchens),
         "world_size": distributed.from_env().world,  # torchrun's ranks: another number is another run
         "device": device,  # "cpu" or "cuda": their numbers differ, as the threads' do
+        **({"stacked_seeds": list(stacked)} if len(stacked) > 1 else {}),
     }
 
 
@@ -273,45 +281,80 @@ def train_method(
 ) -> Path:
     """Train METHOD (or resume its run, or find it finished) on `device` (auto | cpu | cuda) and
     return the run directory."""
+    return train_seeds(method, options, frames, (seed,), kitchens, runs_dir, progress, device)[0]
+
+
+def train_seeds(
+    method: str,
+    options: dict[str, str] | None = None,
+    frames: int = 10_000_000,
+    seeds: tuple[int, ...] = (0,),
+    kitchens=(),
+    runs_dir: Path | str = "runs",
+    progress: Callable[[str], None] = print,
+    device: str = "auto",
+) -> list[Path]:
+    """`train_method` for several seeds of one method and options, trained in one process (stacked:
+    `train.learn`), each a run of its own; the run directories, in the order of `seeds`. One seed is
+    `train_method`'s run. A finished seed is left as it is; the others train together."""
     plugin = load_plugin(method)
     hook = getattr(plugin.module, "train", None)
     if not callable(hook):
         raise TrainError(f"{method} does not train: {plugin.source} defines no train(config, run)")
     if frames < 1:
         raise TrainError(f"frames must be positive, not {frames}")
-    if not 0 <= seed <= MAX_SEED:
-        raise TrainError(f"seed must be in 0..{MAX_SEED}, not {seed}")
+    for seed in seeds:
+        if not 0 <= seed <= MAX_SEED:
+            raise TrainError(f"seed must be in 0..{MAX_SEED}, not {seed}")
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise TrainError(f"seeds must be distinct, at least one: {', '.join(map(str, seeds))}")
     config = plugin.config(options or {})
     kitchens = training_kitchens(kitchens)
     try:
         on = resolve(device)
     except DeviceError as e:
         raise TrainError(str(e)) from e
-    record = run_record(plugin, config, frames, seed, kitchens, name_of(on))
-    directory = run_directory(runs_dir, record)
+    records = [run_record(plugin, config, frames, s, kitchens, name_of(on), seeds) for s in seeds]
+    directories = [run_directory(runs_dir, r) for r in records]
     main = distributed.from_env().main
     if not main:  # torchrun's other ranks say nothing
         progress = lambda line: None  # noqa: E731
-    if (directory / "finished.json").exists():
-        progress(f"{directory} is a finished run of {frames:,} frames; nothing to do")
-        return directory
+    runs = [
+        Run(d, method, frames, s, kitchens, progress, str(on))
+        for d, s in zip(directories, seeds)
+        if not (d / "finished.json").exists()
+    ]
+    for d in directories:
+        if (d / "finished.json").exists():
+            progress(f"{d} is a finished run of {frames:,} frames; nothing to do")
+    if not runs:
+        return directories
     if not main:  # torchrun's other ranks: rank 0 checks, claims and writes
-        run = Run(directory, method, frames, seed, kitchens, progress, str(on))
-        call_train(plugin.source, hook, config, run)
-        return directory
+        call_train(plugin.source, hook, config, runs[0])
+        return directories
     # one trainer per run directory: a second one started on it at once is refused (a killed one's
     # claim is stale and taken over by the resume)
     try:
-        with claims.held(directory / "trainer.claim", f"run {directory}"):
-            return _train_in(
-                directory,
-                lambda config, run: call_train(plugin.source, hook, config, run),
-                config,
-                record,
-                Run(directory, method, frames, seed, kitchens, progress, str(on)),
-            )
+        with contextlib.ExitStack() as held:
+            for run in runs:
+                held.enter_context(claims.held(run.directory / "trainer.claim", f"run {run.directory}"))
+            runs = [r for r in runs if not (r.directory / "finished.json").exists()]  # finished meanwhile
+            for run in runs:
+                store.open_directory(
+                    run.directory, records[directories.index(run.directory)], TrainError, "a run"
+                )
+            if runs:
+                call_train(plugin.source, hook, config, dataclasses.replace(runs[0], stacked=tuple(runs[1:])))
     except claims.ClaimError as e:
         raise TrainError(str(e)) from e
+    unfinished = [r.directory for r in runs if not (r.directory / "finished.json").exists()]
+    if len(runs) > 1 and unfinished:
+        raise TrainError(
+            f"{plugin.source}: train() returned without finishing the stacked seeds' runs "
+            f"{', '.join(map(str, unfinished))}: its train() does not call kgnavbench.train.learn; "
+            "train its seeds one by one"
+        )
+    return directories
 
 
 def call_train(source, hook, config, run: Run) -> None:
@@ -325,15 +368,6 @@ def call_train(source, hook, config, run: Run) -> None:
         raise TrainError(f"{source}: train() called sys.exit({e.code!r}); a plugin raises instead") from e
     except Exception as e:  # noqa: BLE001 - a plugin's failure, reported in one line with its file
         raise TrainError(f"{source}: train() failed: {type(e).__name__}: {e}") from e
-
-
-def _train_in(directory: Path, hook, config, record: dict, run: Run) -> Path:
-    if (directory / "finished.json").exists():  # finished by the process that held the claim before us
-        run.progress(f"{directory} is a finished run of {run.frames:,} frames; nothing to do")
-        return directory
-    store.open_directory(directory, record, TrainError, "a run")  # config.json: written once, then checked
-    hook(config, run)
-    return directory
 
 
 # ------------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Stage 27 — table: the paper's Table I from a table spec (`tables/table1.toml`), assembled and written.
+"""Stage 29 — table: the paper's Table I from a table spec (`tables/table1.toml`), assembled and written.
 
 The spec (kgnavbench/table_spec.py) names the protocol, the presets, the rows and the comparisons
 the paper draws between rows. `run_table` runs every row and seed (`jobs`): train unless a finished

@@ -1,4 +1,4 @@
-"""Stage 23 — table_spec: the table spec (`tables/table1.toml`), read and checked.
+"""Stage 25 — table_spec: the table spec (`tables/table1.toml`), read and checked.
 
 The spec names the protocol (success rule, Stop, episode caps, checkpoint selection), the presets
 (frames per row, episodes per target, seeds, kitchens, training options), the rows (a plugin and its

@@ -1,4 +1,4 @@
-"""Stage 24 — table_statistics: a table's episodes, cells, intervals and verdicts.
+"""Stage 26 — table_statistics: a table's episodes, cells, intervals and verdicts.
 
 What Table I says is computed here, before anything is written: each job's episodes per cell
 (`cell_episodes`: "column/kind" -> one EpisodeValue per episode), a row's seeds together (`RowResult`),

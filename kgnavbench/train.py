@@ -1,21 +1,21 @@
-"""Stage 16 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
+"""Stage 18 — train: the learned methods' trainer. A synchronous batched A2C with the paper's A3C losses,
 imitation learning (IL), target skill extension (TSE), checkpoints, logs and resumption.
 
 It stands on the stages before it: the run directory, options and checkpoints (kgnavbench/runs.py),
-the losses and the IL and TSE data (kgnavbench/losses.py), the network with its inputs around it
-(kgnavbench/agent.py), and the acting half of the algorithm (kgnavbench/rollout.py: the agents in the
-batched navigators of kgnavbench/vecenv.py, stepped n times per update). Read it top to bottom:
+the network with its inputs around it (kgnavbench/agent.py), the acting half of the algorithm
+(kgnavbench/rollout.py: the agents in the batched navigators of kgnavbench/vecenv.py, stepped n times
+per update), the learning half (kgnavbench/learning.py: the losses of an update, as plain functions)
+and a row's seeds stacked into one network (kgnavbench/stacking.py). Read it top to bottom:
 
 1. `Trainer`: `update` is the algorithm, one rollout (`collect`: 20 steps of all agents) and one
-   gradient step on its losses; validation on fixed episodes; and the checkpoint (model, optimiser,
-   every RNG, every agent's episode and LSTM state, the co-visibility counts): a run killed at any
-   moment resumes from `last.pt` exactly as if it had never stopped. Under torchrun each rank holds
-   its share of the agents (kgnavbench/distributed.py).
-2. The learning half, as plain functions of the model and the data: the rollout's A2C loss (and
-   DAgger's), IL's expert batches, TSE's relabelled windows and their loss.
-3. `learn`: the loop, `metrics.csv`, progress lines, `last.pt`, `best.pt` (Table I's checkpoint rule,
-   the paper's words: the checkpoint with the highest validation SR, ties to the later one) and, with
-   keep_every, weight snapshots.
+   gradient step on its losses (`loss`, `step`); validation on fixed episodes; and the checkpoint
+   (model, optimiser, every RNG, every agent's episode and LSTM state, the co-visibility counts): a
+   run killed at any moment resumes from `last.pt` exactly as if it had never stopped. Under torchrun
+   each rank holds its share of the agents (kgnavbench/distributed.py). `stacked_update`: the same
+   update of S seeds of one row at once.
+2. `learn`: the loop over one run (or S stacked ones), `metrics.csv`, progress lines, `last.pt`,
+   `best.pt` (Table I's checkpoint rule, the paper's words: the checkpoint with the highest validation
+   SR, ties to the later) and, with keep_every, weight snapshots.
 A trained checkpoint becomes a plugin policy in the next stage, kgnavbench/policy.py.
 """
 
@@ -28,32 +28,20 @@ import json
 import math
 import random
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
-from . import distributed, encoder, models
+from . import distributed, encoder, models, stacking
 from .agent import Model, run_episodes
-from .env import reward
 from .files import atomic_write, duration_text
-from .graph import STOP
 from .intervals import standard_error
 from .kitchens import KITCHEN_NAMES
-from .losses import (
-    Sequences,
-    actor_critic_loss,
-    assign_targets,
-    expert_sequences,
-    imitation_loss,
-    n_step_returns,
-    optimal_action_loss,
-    optimal_actions,
-    pad,
-    relabel,
-)
+from .learning import expert_batch_loss, relabelled_windows, rollout_losses, skill_extension_loss
+from .losses import Sequences, assign_targets, expert_sequences
 from .rollout import Actors, Rollout
 from .runs import (
     CHECKPOINT_FORMAT,
@@ -204,7 +192,20 @@ class Trainer:
     # -- one update ------------------------------------------------------------------------------
     def update(self) -> None:
         """One rollout of every agent (or, IL only, one expert batch) and one gradient step."""
-        opts, graph = self.opts, self.model.graph()
+        graph, imitate = self.model.graph(), self.imitating()
+        rollout = self.collect(graph) if self.rl or self.dagger else None
+        self.step(self.loss(graph, imitate, rollout))
+
+    def imitating(self) -> bool:
+        """Whether this update (its frames before the rollout) mixes in IL."""
+        return self.il and (not self.rl or self.frames < self.opts.il_fraction * self.run.frames)
+
+    def loss(self, graph, imitate: bool, rollout: Rollout | None, replayed=None) -> torch.Tensor:
+        """The update's loss: the rollout's A2C loss (and DAgger's), IL's expert batch, TSE's relabelled
+        windows, as the options say; their values go to the metrics. `replayed`: the rollout's logits
+        and values with autograd where a stacked pass computed them (kgnavbench/stacking.py); None:
+        `Model.unroll` replays it here."""
+        opts = self.opts
         loss = torch.zeros((), device=self.device)
 
         def add(name: str, term: torch.Tensor, weight: float = 1.0) -> None:
@@ -213,13 +214,10 @@ class Trainer:
             self.stats[name] += term.item()
             self.stats[f"losses_{name}"] += 1
 
-        imitate = self.il and (not self.rl or self.frames < opts.il_fraction * self.run.frames)
-        self.actors.envs.stop_ends = opts.stop_ends_from is not None and self.frames >= opts.stop_ends_from
         windows: list = []  # TSE: the sub-target windows of the episodes that end in this rollout
-        if self.rl or self.dagger:
-            rollout = self.collect(graph)
+        if rollout is not None:
             rl_loss, dagger_loss = rollout_losses(
-                self.model, self.space, rollout, graph, opts, imitate and self.dagger
+                self.model, self.space, rollout, graph, opts, imitate and self.dagger, replayed
             )
             windows = rollout.windows
             if self.rl:
@@ -242,18 +240,35 @@ class Trainer:
                     skill_extension_loss(self.model, self.space, relabelled, graph, opts),
                     opts.tse_weight,
                 )
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        return loss
+
+    def step(self, loss: torch.Tensor | None) -> None:
+        """The gradient step: backward from `loss` (None: a stacked loss's backward has filled the
+        gradients already), the ranks' gradients averaged, clipped, Adam."""
+        if loss is not None:
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
         distributed.average_gradients(self.model.net.parameters(), self.ranks)
-        torch.nn.utils.clip_grad_norm_(self.model.net.parameters(), opts.max_grad_norm)
+        torch.nn.utils.clip_grad_norm_(self.model.net.parameters(), self.opts.max_grad_norm)
         self.optimizer.step()
         self.updates += 1
         distributed.check_replicas(self.model.net.parameters(), self.ranks, self.updates)
 
     def collect(self, graph) -> Rollout:
-        """The acting half: n steps of every agent (`Actors.collect`); the knowledge graph's
-        co-visibility counts then add the views they reached, every rank's on every rank."""
-        rollout = self.actors.collect(self.model, graph, self.reach(), self.stats, self.target_stats)
+        """The acting half: n steps of every agent (`Actors.collect`), then `collected`."""
+        acting = self.acting()
+        return self.collected(self.actors.collect(self.model, graph, *acting))
+
+    def acting(self) -> tuple[int | None, dict, np.ndarray]:
+        """Before a rollout: Stop ends training episodes from stop_ends_from on. What `Actors.collect`
+        takes besides the model: the curriculum's reach and where the episodes' numbers go."""
+        opts = self.opts
+        self.actors.envs.stop_ends = opts.stop_ends_from is not None and self.frames >= opts.stop_ends_from
+        return self.reach(), self.stats, self.target_stats
+
+    def collected(self, rollout: Rollout) -> Rollout:
+        """After a rollout: the knowledge graph's co-visibility counts add the views it reached, every
+        rank's on every rank; the frames are counted."""
         n, b = rollout.states.shape
         if self.model.uses_graph:
             covis, seen = self.model.covis, self.space.objects[rollout.reached.reshape(-1)]
@@ -363,147 +378,29 @@ class Trainer:
             self.target_stats = ck["target_stats"].numpy().copy()
 
 
-# ------------------------------------------------------------------------------------------------
-# 2. The learning half: the losses of one update, from a rollout and from IL's and TSE's sequences
-
-
-def rollout_losses(
-    model: Model, space: StateSpace, ro: Rollout, graph, opts: TrainOptions, imitate: bool
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """The A2C loss of a rollout and, when `imitate`, the cross-entropy of the teacher's actions on
-    every visited state (DAgger). `Model.unroll` replays the rollout's states with autograd, the
-    non-recurrent layers once for all n x B rows, which costs far fewer small operations than a graph
-    built step by step while acting."""
-    n, b = ro.states.shape
-    keep = model.tensor(1.0 - ro.dones)
-    goals = space.destination[ro.targets]
-    logits, values = model.unroll(
-        space, ro.states, goals, ro.start_hidden, keep, graph, ro.scene, ro.histories
-    )
-    log_p = F.log_softmax(logits, -1)
-    taken = log_p.gather(2, model.tensor(ro.actions)[..., None]).squeeze(2)
-    entropies = -(log_p.exp() * log_p).sum(-1)
-    returns = n_step_returns(model.tensor(ro.rewards), model.tensor(ro.dones), ro.bootstrap, opts.gamma)
-    loss, _ = actor_critic_loss(taken, values, entropies, returns, opts.value_weight, opts.entropy)
-    il = None
-    if imitate:
-        optimal, known = optimal_actions(space, ro.targets.reshape(-1), ro.states.reshape(-1))
-        il = optimal_action_loss(log_p.reshape(n * b, -1), optimal, known).mean()
-    return loss, il
-
-
-def expert_batch_loss(
-    model: Model, space: StateSpace, experts: Sequences, batch: int, generator: torch.Generator, graph
-) -> tuple[torch.Tensor, int]:
-    """IL: the cross-entropy on `batch` expert trajectories drawn at random, and the frames they hold."""
-    n = len(experts.goal)
-    order = torch.randperm(n, generator=generator, device=model.device)
-    take = order[: min(batch, n)].sort().values.cpu().numpy()
-    ex = experts
-    seq = Sequences(ex.states[take], ex.actions[take], ex.mask[take], ex.goal[take])
-    last = int(seq.mask.sum(1).max())
-    seq = Sequences(seq.states[:, :last], seq.actions[:, :last], seq.mask[:, :last], seq.goal)
-    logits, _ = sequence_pass(model, space, seq, graph)
-    mask = model.tensor(seq.mask.T.astype(np.float32))
-    return imitation_loss(logits, model.tensor(seq.actions.T), mask), int(seq.mask.sum())
-
-
-def relabelled_windows(windows: list, opts: TrainOptions, rng: np.random.Generator) -> Sequences | None:
-    """TSE: up to tse_batch of the sub-target windows of the episodes that ended during a rollout,
-    relabelled; the rest are dropped. `Sequences.hidden` holds the LSTM state each relabelled
-    episode starts from: the one the agent had there."""
-    if not windows:
-        return None
-    take = rng.choice(len(windows), min(opts.tse_batch, len(windows)), replace=False)
-    seqs, goals, rewards, behaviour, hidden = [], [], [], [], []
-    for j in sorted(take):
-        states, actions, probs, goal, start, stop = windows[j]
-        # the relabelled episode starts after the window's last Stop: in the task "reach the
-        # sub-target and Stop" that Stop ended the episode (a failure), so the walk after it is
-        # the whole episode; keeping it would reward a wrong Stop with the sub-target's +10. The
-        # failure itself (tse_failures) is a one-step episode: Stop where it stopped, -0.01.
-        # (Only where training's wrong Stop is a no-op: where it ends the episode, no window holds one.)
-        stops = np.flatnonzero(actions == STOP)
-        if len(stops):
-            last = stops[-1]
-            if opts.tse_failures and states[last] != goal:
-                seqs.append(([int(states[last])], [STOP]))
-                goals.append(goal)
-                rewards.append(reward(np.zeros(1, bool), np.zeros(1, bool)))
-                behaviour.append(probs[last : last + 1].astype(np.float64))
-                hidden.append(stop)
-            states, actions, probs = states[last + 1 :], actions[last + 1 :], probs[last + 1 :]
-        if len(actions) == 0:
-            continue
-        s, a, r, mu = relabel(list(states) + [goal], actions, probs, goal)
-        seqs.append((s, a))
-        goals.append(goal)
-        rewards.append(r)
-        behaviour.append(mu)
-        hidden.append(start)
-    if not seqs:
-        return None
-    seq = pad(seqs, goals)
-    seq.rewards = np.zeros(seq.states.shape, np.float32)
-    seq.behaviour = np.full(seq.states.shape, np.nan)
-    for i, (r, mu) in enumerate(zip(rewards, behaviour)):
-        seq.rewards[i, : len(r)], seq.behaviour[i, : len(mu)] = r, mu
-    seq.hidden = np.stack(hidden)  # (N, 2, lstm)
-    return seq
-
-
-def skill_extension_loss(
-    model: Model, space: StateSpace, seq: Sequences, graph, opts: TrainOptions
-) -> torch.Tensor:
-    """TSE: A2C's loss on relabelled sub-trajectories (whole episodes: Monte-Carlo returns),
-    optionally with truncated importance weights min(1, pi/mu)."""
-    logits, values = sequence_pass(model, space, seq, graph)
-    log_p = F.log_softmax(logits, -1)
-    tensor = model.tensor
-    actions = tensor(seq.actions.T)
-    taken = log_p.gather(2, actions[..., None]).squeeze(2)
-    entropy = -(log_p.exp() * log_p).sum(-1)
-    mask = tensor(seq.mask.T.astype(np.float32))
-    rewards = tensor(seq.rewards.T)
-    dones = torch.zeros_like(rewards)
-    dones[tensor(seq.mask.sum(1) - 1), torch.arange(len(seq.goal), device=model.device)] = 1.0
-    returns = n_step_returns(rewards, dones, torch.zeros(len(seq.goal), device=model.device), opts.gamma)
-    weights = None
-    if opts.tse_importance:
-        # min(1, pi/mu) on the steps the agent took. The appended Stop has no mu (the agent never
-        # took it there) and keeps weight 1: it is the relabelled task's one demonstration of
-        # success, and weighting it by pi would scale its gradient by pi(Stop), least where it
-        # is most needed
-        mu = tensor(seq.behaviour.T).float()
-        ratio = (taken.detach().exp() / mu).clamp(max=1.0)
-        weights = torch.where(torch.isnan(mu), torch.ones_like(ratio), ratio)
-    loss, _ = actor_critic_loss(
-        taken, values, entropy, returns, opts.value_weight, opts.entropy, weights, mask
-    )
-    return loss
-
-
-def sequence_pass(model: Model, space: StateSpace, seq: Sequences, graph):
-    """A separate pass of the model over padded sequences (IL's, TSE's), from the LSTM states
-    `seq.hidden` (zeros where None): logits (L, N, 10), values (L, N)."""
-    n, length = seq.states.shape
-    states = np.ascontiguousarray(seq.states.T)
-    goals = np.broadcast_to(seq.goal, (length, n))
-    history, scene = None, None
-    if (
-        model.config.arch == "ff"
-    ):  # the last `history` states of each step, the first state repeated before it
-        back = np.arange(length)[:, None] - np.arange(model.config.history)[::-1]
-        history = np.ascontiguousarray(np.transpose(seq.states[:, np.clip(back, 0, None)], (1, 0, 2)))
-        scene = space.kitchen_of[seq.states[:, 0]]
-    hidden = model.net.initial_state(n, model.device)
-    if hidden is None:
-        return model.unroll(space, states, goals, hidden, None, graph, scene, history)
-    if seq.hidden is not None:
-        start = model.tensor(seq.hidden)
-        hidden = (start[:, 0].to(hidden[0].dtype), start[:, 1].to(hidden[1].dtype))
-    # the real steps only (each sequence's mask is a prefix): no work on the padding
-    return model.unroll_sequences(space, states, goals, seq.mask.sum(1), hidden, graph)
+def stacked_update(trainers: list[Trainer]) -> None:
+    """`Trainer.update` of S seeds of one row at once (kgnavbench/stacking.py): their rollouts in
+    lock-step and their learning passes stacked, then each seed's own losses, gradient clipping and
+    Adam step. The seeds' losses are summed for one backward pass; each seed's parameters get the
+    gradient of its own loss only."""
+    models = [t.model for t in trainers]
+    graphs = [m.graph() for m in models]
+    imitate = [t.imitating() for t in trainers]
+    weights, readout = stacking.stacked_weights(models), stacking.stacked_readout(graphs)
+    replayed = [None] * len(trainers)
+    rollouts = [None] * len(trainers)
+    if trainers[0].rl or trainers[0].dagger:
+        acting = [t.acting() for t in trainers]
+        actors = [t.actors for t in trainers]
+        collected = stacking.collect(actors, models, graphs, *stacking.detached(weights, readout), acting)
+        rollouts = [t.collected(r) for t, r in zip(trainers, collected)]
+        replayed = stacking.unroll(models, [t.space for t in trainers], rollouts, weights, readout)
+    losses = [t.loss(*args) for t, *args in zip(trainers, graphs, imitate, rollouts, replayed)]
+    for t in trainers:
+        t.optimizer.zero_grad(set_to_none=True)
+    torch.stack(losses).sum().backward()
+    for t in trainers:
+        t.step(None)
 
 
 def ff_validation_episodes(space: StateSpace, at_least: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -530,7 +427,7 @@ def ff_validation_episodes(space: StateSpace, at_least: int, seed: int) -> tuple
 
 
 # ------------------------------------------------------------------------------------------------
-# 3. The loop: logs, checkpoints, resumption
+# 2. The loop: logs, checkpoints, resumption
 
 
 def _csv_text(rows: list[dict]) -> str:
@@ -541,15 +438,63 @@ def _csv_text(rows: list[dict]) -> str:
     return out.getvalue()
 
 
+@dataclasses.dataclass
+class Session:
+    """One run's bookkeeping around its trainer in `learn`'s loop: where it logs, validates and keeps
+    checkpoints next, and the clock."""
+
+    run: Run
+    trainer: Trainer
+    progress: Callable[[str], None]
+    seconds_before: float  # the training time of the sessions before a resume
+    next_log: int
+    next_val: int
+    next_keep: int | None
+    t0: float = dataclasses.field(default_factory=time.perf_counter)
+    f0: int = 0  # the frames it resumed at
+    estimated: bool = False  # long work says how long: once, after the first ESTIMATE_AFTER seconds
+
+    @property
+    def done(self) -> bool:
+        return self.trainer.frames >= self.run.frames
+
+
 def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl: bool = True) -> Path:
-    """Train (or resume) a run: A2C (rl=True) with IL and TSE as the options say, or IL alone."""
+    """Train (or resume) a run: A2C (rl=True) with IL and TSE as the options say, or IL alone. With
+    `run.stacked` (`kgnavbench train --seeds`), those runs too, in this process: one update of every
+    seed at once (`stacked_update`) while they are at the same frames, alone one by one where a resume
+    left one behind."""
     options.check()
     torch.set_num_threads(options.threads)
     ranks = distributed.start(torch.device(run.device))
+    if run.stacked:
+        if ranks.world > 1:
+            raise TrainError("stacked seeds run in one process: not under torchrun")
+        stacking.check_stackable(model_config, options.bf16)
+    sessions = [open_session(r, options, model_config, rl, ranks) for r in (run, *run.stacked)]
+    while not all(s.done for s in sessions):
+        behind = min(s.trainer.frames for s in sessions if not s.done)
+        group = [s for s in sessions if not s.done and s.trainer.frames == behind]
+        if len(group) > 1:
+            stacked_update([s.trainer for s in group])
+        else:
+            group[0].trainer.update()
+        for s in group:
+            after_update(s, ranks)
+    distributed.finish(ranks)
+    for s in sessions:
+        finish_session(s, ranks)
+    return run.directory
+
+
+def open_session(
+    run: Run, options: TrainOptions, model_config: models.ModelConfig, rl: bool, ranks: distributed.Ranks
+) -> Session:
+    """A run's trainer, resumed from its last.pt where there is one (refused when it is another run's),
+    its metrics.csv cut to the resume point."""
     progress = run.progress if ranks.main else (lambda line: None)
     trainer = Trainer(run, options, model_config, rl, ranks)
-    last, best = run.directory / "last.pt", run.directory / "best.pt"
-    metrics_path = run.directory / "metrics.csv"
+    last, metrics_path = run.directory / "last.pt", run.directory / "metrics.csv"
     if last.exists():
         ck = load_checkpoint(last)
         record = {
@@ -572,7 +517,7 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
         except (KeyError, ValueError, RuntimeError, TypeError) as e:
             raise TrainError(f"checkpoint {last} does not fit this run ({type(e).__name__}: {e})") from e
         progress(f"resumed {run.directory} from {last.name} at {trainer.frames:,} frames")
-    seconds_before = 0.0  # the training time of the sessions before a resume: the resume point's row's
+    seconds_before = 0.0  # the resume point's row's
     if ranks.main:
         kept = read_metrics_rows(metrics_path, trainer.frames)
         atomic_write(metrics_path, _csv_text(kept))
@@ -583,104 +528,110 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
                     f"{metrics_path} has no training time at {trainer.frames:,} frames; it counts from now"
                 )
                 seconds_before = 0.0
-    every = options.log_every
-    next_log = (trainer.frames // every + 1) * every
-    next_val = (trainer.frames // options.val_every + 1) * options.val_every
     agents = trainer.total_agents if rl or trainer.dagger else 0
     on_ranks = f" on {ranks.world} ranks" if ranks.world > 1 else ""
+    stacked = f", seed {run.seed} of {len(run.stacked) + 1} stacked" if run.stacked else ""
     progress(
         f"training {run.method} on {len(trainer.kitchens)} kitchens "
         f"({len(trainer.space.target_ids)} targets, "
-        f"{agents} agents{on_ranks}) to {run.frames:,} frames; run {run.directory}"
+        f"{agents} agents{on_ranks}{stacked}) to {run.frames:,} frames; run {run.directory}"
     )
-    keep = options.keep_every
-    next_keep = (trainer.frames // keep + 1) * keep if keep else None
-    t0, f0 = time.perf_counter(), trainer.frames
-    estimated = False  # long work says how long: once, after the first ESTIMATE_AFTER seconds
-    while trainer.frames < run.frames:
-        trainer.update()
-        if not estimated and time.perf_counter() - t0 >= ESTIMATE_AFTER and trainer.frames < run.frames:
-            estimated = True
-            rate = (trainer.frames - f0) / (time.perf_counter() - t0)
-            if rate > 0:
-                progress(
-                    f"  {rate:,.0f} frames/s over the first {trainer.frames - f0:,} frames: about "
-                    f"{duration_text((run.frames - trainer.frames) / rate)} to go at that rate (later "
-                    "episodes are longer; the progress lines give the ETA as it goes)"
-                )
-        if next_keep is not None and trainer.frames >= next_keep and ranks.main:
-            next_keep = (trainer.frames // keep + 1) * keep
-            snapshots = run.directory / "snapshots"
-            snapshots.mkdir(exist_ok=True)
-            save_checkpoint(snapshots / f"frames-{trainer.frames}.pt", trainer.policy_state())
-        done = trainer.frames >= run.frames
-        if trainer.frames < next_log and not done:
-            continue
-        next_log = (trainer.frames // every + 1) * every
-        val_sr = val_spl = float("nan")
-        val_episodes = 0
-        trainer.stats = distributed.sum_numbers(trainer.stats, ranks)  # every rank's episodes and losses
-        if ranks.world > 1:
-            trainer.target_stats = distributed.sum_tensor(
-                torch.from_numpy(trainer.target_stats), ranks
-            ).numpy()
-        ranks_state = distributed.gather(trainer.rank_state(), ranks) if ranks.world > 1 else None
-        if not ranks.main:  # rank 0 alone validates and writes
-            trainer.stats = trainer._empty_stats()
-            trainer.target_stats[:] = 0.0
-            continue
-        if trainer.frames >= next_val or done:
-            next_val = (trainer.frames // options.val_every + 1) * options.val_every
-            tv = time.perf_counter()
-            val_sr, val_spl, val_frames, val_episodes = trainer.validate()
-            trainer.val_max = max(trainer.val_max, val_sr)
-            selected = val_sr >= trainer.best_val_sr  # the paper's rule: the best; ties to the later
+    keep, frames = options.keep_every, trainer.frames
+    return Session(
+        run, trainer, progress, seconds_before,
+        next_log=(frames // options.log_every + 1) * options.log_every,
+        next_val=(frames // options.val_every + 1) * options.val_every,
+        next_keep=(frames // keep + 1) * keep if keep else None,
+        f0=frames,
+    )  # fmt: skip
+
+
+def after_update(s: Session, ranks: distributed.Ranks) -> None:
+    """After an update: the time estimate, a snapshot, and every log_every frames the metrics row,
+    validation (every val_every, and at the end; best.pt) and last.pt."""
+    trainer, run, options, progress = s.trainer, s.run, s.trainer.opts, s.progress
+    if not s.estimated and time.perf_counter() - s.t0 >= ESTIMATE_AFTER and not s.done:
+        s.estimated = True
+        rate = (trainer.frames - s.f0) / (time.perf_counter() - s.t0)
+        if rate > 0:
             progress(
-                f"  validation: SR {val_sr:.1f}% (standard error {standard_error(val_sr, val_episodes):.1f}, "
-                f"{val_episodes} episodes), SPL {val_spl:.1f}% ({val_frames:,} frames in "
-                f"{time.perf_counter() - tv:.1f} s){'; now best.pt' if selected else ''}"
+                f"  {rate:,.0f} frames/s over the first {trainer.frames - s.f0:,} frames: about "
+                f"{duration_text((run.frames - trainer.frames) / rate)} to go at that rate (later "
+                "episodes are longer; the progress lines give the ETA as it goes)"
             )
-            if selected:
-                trainer.best_val_sr = val_sr
-                save_checkpoint(best, {**trainer.state_dict(), "val_sr": val_sr, "val_spl": val_spl})
-        row = _metrics_row(
-            trainer, seconds_before, time.perf_counter() - t0, trainer.frames - f0, val_sr, val_spl
-        )
-        row["val_episodes"] = val_episodes or ""
-        with open(metrics_path, "a") as f:
-            csv.DictWriter(f, METRICS).writerow(row)
+    if s.next_keep is not None and trainer.frames >= s.next_keep and ranks.main:
+        keep = options.keep_every
+        s.next_keep = (trainer.frames // keep + 1) * keep
+        snapshots = run.directory / "snapshots"
+        snapshots.mkdir(exist_ok=True)
+        save_checkpoint(snapshots / f"frames-{trainer.frames}.pt", trainer.policy_state())
+    if trainer.frames < s.next_log and not s.done:
+        return
+    every = options.log_every
+    s.next_log = (trainer.frames // every + 1) * every
+    val_sr = val_spl = float("nan")
+    val_episodes = 0
+    trainer.stats = distributed.sum_numbers(trainer.stats, ranks)  # every rank's episodes and losses
+    if ranks.world > 1:
+        trainer.target_stats = distributed.sum_tensor(torch.from_numpy(trainer.target_stats), ranks).numpy()
+    ranks_state = distributed.gather(trainer.rank_state(), ranks) if ranks.world > 1 else None
+    if not ranks.main:  # rank 0 alone validates and writes
         trainer.stats = trainer._empty_stats()
         trainer.target_stats[:] = 0.0
-        save_checkpoint(last, {**trainer.state_dict(), **({"ranks": ranks_state} if ranks.world > 1 else {})})
-        fps = (trainer.frames - f0) / max(time.perf_counter() - t0, 1e-9)
-        eta = f"  ETA {duration_text((run.frames - trainer.frames) / fps)}" if not done and fps > 0 else ""
+        return
+    if trainer.frames >= s.next_val or s.done:
+        s.next_val = (trainer.frames // options.val_every + 1) * options.val_every
+        tv = time.perf_counter()
+        val_sr, val_spl, val_frames, val_episodes = trainer.validate()
+        trainer.val_max = max(trainer.val_max, val_sr)
+        selected = val_sr >= trainer.best_val_sr  # the paper's rule: the best; ties to the later
         progress(
-            f"{trainer.frames:>12,} frames  {row['frames_per_s']:>8} frames/s{eta}  "
-            f"reward/frame {row['mean_reward']}  "
-            f"SR(training episodes, mean over targets) {row['success_rate']}%  "
-            f"losses RL {row['rl_loss']} IL {row['il_loss']} "
-            f"TSE {row['tse_loss']}"
+            f"  validation: SR {val_sr:.1f}% (standard error {standard_error(val_sr, val_episodes):.1f}, "
+            f"{val_episodes} episodes), SPL {val_spl:.1f}% ({val_frames:,} frames in "
+            f"{time.perf_counter() - tv:.1f} s){'; now best.pt' if selected else ''}"
         )
-    seconds = seconds_before + time.perf_counter() - t0
-    distributed.finish(ranks)
-    if not ranks.main:
-        return run.directory
-    atomic_write(
-        run.directory / "finished.json",
-        json.dumps(
-            {
-                "frames": trainer.frames,
-                "best_val_sr": trainer.best_val_sr,
-                "best_rule": BEST_RULE,
-                "seconds": seconds,
-            }
-        )
-        + "\n",
+        if selected:
+            trainer.best_val_sr = val_sr
+            save_checkpoint(
+                run.directory / "best.pt", {**trainer.state_dict(), "val_sr": val_sr, "val_spl": val_spl}
+            )
+    seconds = time.perf_counter() - s.t0
+    row = _metrics_row(trainer, s.seconds_before, seconds, trainer.frames - s.f0, val_sr, val_spl)
+    row["val_episodes"] = val_episodes or ""
+    with open(run.directory / "metrics.csv", "a") as f:
+        csv.DictWriter(f, METRICS).writerow(row)
+    trainer.stats = trainer._empty_stats()
+    trainer.target_stats[:] = 0.0
+    save_checkpoint(
+        run.directory / "last.pt",
+        {**trainer.state_dict(), **({"ranks": ranks_state} if ranks.world > 1 else {})},
     )
+    fps = (trainer.frames - s.f0) / max(seconds, 1e-9)
+    eta = f"  ETA {duration_text((run.frames - trainer.frames) / fps)}" if not s.done and fps > 0 else ""
     progress(
-        f"finished {run.method}: {trainer.frames:,} frames, best validation SR {trainer.best_val_sr:.1f}%"
+        f"{trainer.frames:>12,} frames  {row['frames_per_s']:>8} frames/s{eta}  "
+        f"reward/frame {row['mean_reward']}  "
+        f"SR(training episodes, mean over targets) {row['success_rate']}%  "
+        f"losses RL {row['rl_loss']} IL {row['il_loss']} "
+        f"TSE {row['tse_loss']}"
     )
-    return run.directory
+
+
+def finish_session(s: Session, ranks: distributed.Ranks) -> None:
+    """finished.json: the frames, the selected checkpoint's validation SR and the training time."""
+    if not ranks.main:
+        return
+    trainer = s.trainer
+    finished = {
+        "frames": trainer.frames,
+        "best_val_sr": trainer.best_val_sr,
+        "best_rule": BEST_RULE,
+        "seconds": s.seconds_before + time.perf_counter() - s.t0,
+    }
+    atomic_write(s.run.directory / "finished.json", json.dumps(finished) + "\n")
+    s.progress(
+        f"finished {s.run.method}: {trainer.frames:,} frames, best validation SR {trainer.best_val_sr:.1f}%"
+    )
 
 
 def _metrics_row(

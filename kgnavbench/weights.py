@@ -1,4 +1,4 @@
-"""Stage 19 — weights: which weights an evaluation tests. A training run's checkpoints (`best`: Table
+"""Stage 21 — weights: which weights an evaluation tests. A training run's checkpoints (`best`: Table
 I's rule, the highest validation SR; `last`: the final weights; `frames-N`: a snapshot kept with
 keep_every), chosen (`selected_checkpoint`), read once and checked against the checkpoint's own record
 (`read_weights`), and frozen into the evaluation's own directory (`freeze_weights`). `EvalError` is

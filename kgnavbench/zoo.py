@@ -1,4 +1,4 @@
-"""Stage 25 — zoo: finished training runs shipped into a folder of their own (`zoo/`), and found there.
+"""Stage 27 — zoo: finished training runs shipped into a folder of their own (`zoo/`), and found there.
 
 `ship_run` copies a finished run (config.json, metrics.csv, finished.json, best.pt and, with "last",
 last.pt, weights only, each with its sha256) into the zoo, whole or not at all. `trained_run` finds, in
@@ -33,7 +33,17 @@ from .table_spec import (
 
 # what a run's config.json must share with a row's job to be that job's run in a `trained` folder; the
 # code's hashes are left out: a shipped run stays usable after later changes to the training code
-TRAINED_RUN_KEYS = ("method", "options", "frames", "seed", "kitchens", "world_size", "device")
+# (stacked_seeds: a run of `train --seeds` is none of a table's single-seed jobs, as another world_size)
+TRAINED_RUN_KEYS = (
+    "method",
+    "options",
+    "frames",
+    "seed",
+    "kitchens",
+    "world_size",
+    "device",
+    "stacked_seeds",
+)
 # options a plugin gained after runs were shipped, with the value that reproduces how those runs
 # trained: a shipped run's config without the option is read as having that value
 ADDED_OPTIONS = {
@@ -51,7 +61,7 @@ def record_differences(config: dict, record: dict) -> list[str]:
     """What a run's config.json differs in from a job's `record` on TRAINED_RUN_KEYS ("options.il",
     "frames", ...; none: it is that job's run). An option the run predates counts as ADDED_OPTIONS
     says; UNWEIGHTED_OPTIONS are not compared."""
-    differ = [key for key in TRAINED_RUN_KEYS if config.get(key) != record[key]]
+    differ = [key for key in TRAINED_RUN_KEYS if config.get(key) != record.get(key)]
     if isinstance(config.get("options"), dict) and "options" in differ:
         options = {**{k: v for k, v in ADDED_OPTIONS.items() if k in record["options"]}, **config["options"]}
         differ.remove("options")
@@ -70,7 +80,7 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfin
     several runs match (a job trained again by newer code beside the old run), the one this
     checkout's training code trained is used; failing that, they are named and none is used, rather
     than one picked by folder name."""
-    want = {key: record[key] for key in TRAINED_RUN_KEYS}
+    want = {key: record.get(key) for key in TRAINED_RUN_KEYS}
     nearest: tuple[int, str] | None = None  # (keys that differ, which) of the closest run, for the error
     matches: list[tuple[Path, dict]] = []
     for run_dir, config in _run_configs(folder, record["method"]):

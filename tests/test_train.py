@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from kgnavbench import agent, intervals, losses, models, runs, train, vecenv
+from kgnavbench import agent, intervals, learning, losses, models, runs, train, vecenv
 from kgnavbench.cli import main
 from kgnavbench.graph import STOP
 from kgnavbench.kitchens import object_types
@@ -87,7 +87,7 @@ def test_stop_ends_from_and_wrong_stop_penalty(tmp_path, floorplan1_tasks, monke
     options = tiny_options(stop_ends_from=10, wrong_stop_penalty=0.5, n_steps=3)
     trainer = train.Trainer(tiny_run(tmp_path), options, models.ModelConfig(), True)
     rewards = []
-    monkeypatch.setattr(train, "n_step_returns", lambda r, *a: rewards.append(r.clone()) or r.clone())
+    monkeypatch.setattr(learning, "n_step_returns", lambda r, *a: rewards.append(r.clone()) or r.clone())
     trainer.update()  # frames 0: a wrong Stop is a no-op; the agents stay where they started
     starts = trainer.actors.nav.start.copy()
     assert trainer.stats["episodes"] == 0 and (trainer.actors.nav.state == starts).all()
@@ -241,7 +241,7 @@ def test_tse_subtrajectories_end_at_their_subtarget_with_a_successful_stop(tmp_p
     successes = failures = 0
     for _ in range(60):  # rollouts until both kinds of relabelled episode were seen
         windows = trainer.collect(None).windows
-        seq = train.relabelled_windows(windows, trainer.opts, trainer.actors.rng)
+        seq = learning.relabelled_windows(windows, trainer.opts, trainer.actors.rng)
         if seq is None:
             continue
         for i in range(len(seq.goal)):
@@ -306,7 +306,7 @@ def test_imitation_loss_falls_on_a_fixed_batch(tmp_path, floorplan1_tasks):
     torch.manual_seed(0)
     losses = []
     for _ in range(40):
-        loss, _ = train.expert_batch_loss(
+        loss, _ = learning.expert_batch_loss(
             trainer.model, trainer.space, trainer.experts, trainer.opts.il_batch, trainer.generator, None
         )
         trainer.optimizer.zero_grad()
@@ -818,14 +818,14 @@ def test_tse_replays_from_the_stored_lstm_state(tmp_path, floorplan1_tasks):
     options = tiny_options(tse=True, episode_cap=30, n_steps=10)
     trainer = train.Trainer(tiny_run(tmp_path), options, models.ModelConfig(lstm=32, hidden=32), True)
     for _ in range(40):
-        seq = train.relabelled_windows(trainer.collect(None).windows, trainer.opts, trainer.actors.rng)
+        seq = learning.relabelled_windows(trainer.collect(None).windows, trainer.opts, trainer.actors.rng)
         if seq is not None and np.abs(seq.hidden).sum() > 0:
             break
     assert seq is not None and seq.hidden.shape == (len(seq.goal), 2, 32) and np.abs(seq.hidden).sum() > 0
     with torch.no_grad():
-        stored, _ = train.sequence_pass(trainer.model, trainer.space, seq, None)
+        stored, _ = learning.sequence_pass(trainer.model, trainer.space, seq, None)
         seq.hidden = None
-        zeros, _ = train.sequence_pass(trainer.model, trainer.space, seq, None)
+        zeros, _ = learning.sequence_pass(trainer.model, trainer.space, seq, None)
     assert not torch.allclose(stored, zeros)
 
 
@@ -1189,3 +1189,31 @@ def test_a_short_training_writes_the_recorded_weights(tmp_path, hermetic_cache):
     got = json.loads(done.stdout.strip().splitlines()[-1])
     print(json.dumps({repr(k): got[str(i)] for i, k in enumerate(GOLDEN_WEIGHTS)}, indent=1))
     assert [got[str(i)] for i in range(len(jobs))] == list(GOLDEN_WEIGHTS.values())
+
+
+def test_the_profile_benchmark_times_the_packages_own_functions(tmp_path, floorplan1_tasks):
+    """benchmarks/train_profile.py wraps the package's functions in place (no copy of them): every
+    part it names is timed in a short real run, the parts add up to at most the wall time, and the
+    package is as it was afterwards."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("train_profile", ROOT / "benchmarks" / "train_profile.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+
+    def wrapped():
+        return (
+            train.Trainer.__init__,
+            agent.Model.__call__,
+            train.rollout_losses,
+            torch.Tensor.backward,
+        )
+
+    before = wrapped()
+    options = {**TINY, "tse": "true", "il": "true", "episode_cap": "30"}
+    seconds, wall, frames = bench.profile("lstm_a3c", options, 420, ("FloorPlan1",), tmp_path)
+    assert frames >= 420
+    for part in ("set-up", "environment", "acting forward", "update forward", "update backward", "optimiser"):
+        assert seconds[part] > 0, part
+    assert sum(v for k, v in seconds.items() if k != "the rest") <= wall + 1e-6
+    assert wrapped() == before
