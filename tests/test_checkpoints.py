@@ -245,6 +245,7 @@ def test_matched_pairs_the_seeds_snapshots_of_one_schedule_not_their_exact_frame
         ("+IL", 0): [2_500_400, 5_000_800],
         ("+IL", 1): [2_500_400, 5_000_800],
         ("+IL", 2): [2_500_400, 5_000_800],
+        ("+IL", 3): [2_500_400, 5_000_800],  # the paper preset's row_seeds: +IL has 4
     }
     monkeypatch.setattr(
         checkpoints, "run_with_snapshots", lambda p, row, seed, *a, **k: Path(f"{row.name}/{seed}")
@@ -265,12 +266,12 @@ def test_matched_pairs_the_seeds_snapshots_of_one_schedule_not_their_exact_frame
     said = []
     checkpoints.matched(load_spec(SPEC_FILE), "paper", tmp_path, rows=("LSTM A3C",), progress=said.append)
     pairs = [c for c in calls if c[0] == "LSTM A3C"]
-    assert [c[3] for c in pairs] == [
-        round((2_500_400 * 5 + 2_500_013) / 6),
-        round((5_000_800 * 5 + 5_000_977) / 6),
+    assert [c[3] for c in pairs] == [  # the mean over both rows' 7 seeds
+        round((2_500_400 * 6 + 2_500_013) / 7),
+        round((5_000_800 * 6 + 5_000_977) / 7),
     ]
     assert pairs[0][1] == ["LSTM A3C s0 at 2500400", "LSTM A3C s1 at 2500013", "LSTM A3C s2 at 2500400"]
-    assert pairs[1][2] == ["+IL s0 at 5000800", "+IL s1 at 5000800", "+IL s2 at 5000800"]
+    assert pairs[1][2] == [f"+IL s{seed} at 5000800" for seed in range(4)]
     assert any("frames 7,501,200 left out" in line for line in said)
 
 
