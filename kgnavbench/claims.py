@@ -6,7 +6,7 @@ grants to one process only. It is released (deleted) when the work ends. A claim
 this same host, is stale (a killed run): the next claimant moves it aside (a rename, which one process
 alone wins) and claims afresh. A claim from another host is never judged stale from here (its pid means
 nothing on this machine): the message names the host, and deleting the claim file frees it. Except on a
-Ray cluster (`jobs.run_jobs_on_ray`): there a claim also records its Ray node and its cluster's head,
+Ray cluster (`ray_jobs.run_jobs_on_ray`): there a claim also records its Ray node and its cluster's head,
 and a claim whose node Ray reports dead, or whose cluster is gone (its head answers no more: a rerun
 on a fresh cluster after the head was lost), is stale wherever it is read, so that a job retried on
 another node, or on another cluster, takes over its run directory.

@@ -592,22 +592,15 @@ class ActorCritic(nn.Module):
         first), `batch_sizes` (CPU int64) how many at each step; the state (h, c) (N, lstm) before the
         first step, in the same order -> the outputs h (P, lstm). Only real steps are computed: padded
         to the longest, a TSE batch is some three quarters padding (measured)."""
-        cell = self.lstm
-        weights = [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh]
-        dtype = cell.weight_ih.dtype
-        h, c = state
-        joint, h, c = joint.to(dtype).contiguous(), h.to(dtype)[None], c.to(dtype)[None]
-        training = torch.is_grad_enabled()
-        fp32_lstm = joint.device.type == "cpu" and not _CPU_HAS_BF16 and torch.is_autocast_enabled("cpu")
-        with torch.autocast("cpu", enabled=False) if fp32_lstm else contextlib.nullcontext():
-            return torch.lstm(joint, batch_sizes, (h, c), weights, True, 1, 0.0, training, False)[0]
+        return self._lstm(joint, state, batch_sizes)[0]
 
-    def _lstm(self, joint: Tensor, state) -> tuple[Tensor, Tensor, Tensor]:
+    def _lstm(self, joint: Tensor, state, batch_sizes: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """torch's fused LSTM (oneDNN on the CPU, cuDNN on CUDA) with the LSTMCell's own weights (the
-        checkpoints keep LSTMCell's names). The same function as the cell to float rounding, and about
-        twice as fast on the CPU even for one step (measured at 140 x 256, one thread: 1.2 against 2.5 ms
-        per step; a 20-step sequence forward and backward 76 against 155 ms). The trainer's unroll across
-        episode ends keeps the cell (`agent.Model.unroll`)."""
+        checkpoints keep LSTMCell's names), over joint (T, N, J), or packed sequences when `batch_sizes`
+        is given. The same function as the cell to float rounding, and about twice as fast on the CPU
+        even for one step (measured at 140 x 256, one thread: 1.2 against 2.5 ms per step; a 20-step
+        sequence forward and backward 76 against 155 ms). The trainer's unroll across episode ends keeps
+        the cell (`agent.Model.unroll`)."""
         cell = self.lstm
         h, c = state
         weights = [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh]
@@ -620,6 +613,8 @@ class ActorCritic(nn.Module):
         # LSTM runs in fp32 and the rest of the network stays under autocast.
         fp32_lstm = joint.device.type == "cpu" and not _CPU_HAS_BF16 and torch.is_autocast_enabled("cpu")
         with torch.autocast("cpu", enabled=False) if fp32_lstm else contextlib.nullcontext():
+            if batch_sizes is not None:  # torch.lstm's packed overload: (data, batch_sizes, hx, ...)
+                return torch.lstm(joint, batch_sizes, (h, c), weights, True, 1, 0.0, training, False)
             return torch.lstm(joint, (h, c), weights, True, 1, 0.0, training, False, False)
 
     def heads(self, h: Tensor) -> tuple[Tensor, Tensor]:

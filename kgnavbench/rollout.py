@@ -14,6 +14,7 @@ The action sampler (a torch generator) is the trainer's: IL draws its batches fr
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import torch
@@ -41,6 +42,34 @@ def answer(model: Model, request: Forward, graph):
     """A `Forward` answered by one model: (logits, value, hidden, extras)."""
     space, states, goals, hidden, scene, history = request.inputs
     return model(space, states, goals, hidden, graph, scene, history)
+
+
+def drive(steps: list, cut, step) -> list:
+    """`Actors.steps` generators run to their rollouts in lock-step, one forward pass at a time: each
+    "cut" request answered alone by `cut(i, request)`, then the "step" requests of all at once by
+    `step(requests)` (a list of answers). `Actors.collect` drives one; `stacking.collect` a row's
+    seeds, their step passes stacked. The generators take the same steps, so they end together."""
+    done: list = [None] * len(steps)
+
+    def send(i: int, reply) -> Forward | None:
+        try:
+            return steps[i].send(reply)
+        except StopIteration as end:
+            done[i] = end.value
+            return None
+
+    requests = [next(s) for s in steps]
+    while True:
+        for i in range(len(steps)):
+            while requests[i] is not None and requests[i].kind == "cut":
+                requests[i] = send(i, cut(i, requests[i]))
+        live = [r is not None for r in requests]
+        if not any(live):
+            return done
+        if not all(live):
+            raise RuntimeError("lock-stepped actors out of step")
+        for i, reply in enumerate(step(requests)):
+            requests[i] = send(i, reply)
 
 
 @dataclass
@@ -112,12 +141,9 @@ class Actors:
         from its destination) begins at the next step."""
         steps = self.steps(model, reach, stats, per_target)
         with torch.no_grad():
-            request = next(steps)
-            while True:
-                try:
-                    request = steps.send(answer(model, request, graph))
-                except StopIteration as done:
-                    return done.value
+            alone = partial(answer, model, graph=graph)
+            [rollout] = drive([steps], lambda i, request: alone(request), lambda one: [alone(one[0])])
+        return rollout
 
     def steps(self, model: Model, reach: int | None, stats: dict, per_target: np.ndarray):
         """`collect` as a generator that yields each forward pass it needs (a `Forward`) and is sent

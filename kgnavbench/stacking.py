@@ -23,13 +23,15 @@ against its single-seed one.
 
 from __future__ import annotations
 
+from functools import partial
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from .agent import Model
 from .models import GraphTerms, ModelConfig, ModelError, masked_softmax
-from .rollout import Forward, Rollout, answer
+from .rollout import Forward, Rollout, answer, drive
 
 Weights = dict[str, Tensor]
 
@@ -81,7 +83,7 @@ def stacked_readout(graphs: list[GraphTerms | None]) -> tuple[Tensor, Tensor, Te
     return tuple(torch.stack(parts) for parts in zip(*(g.readout for g in graphs)))
 
 
-def detached(weights: Weights, readout):
+def for_acting(weights: Weights, readout):
     """The weights and readout terms without autograd, for acting."""
     w = {k: v.detach() for k, v in weights.items()}
     return w, None if readout is None else tuple(t.detach() for t in readout)
@@ -213,28 +215,12 @@ def collect(
     pass stacked; the agents a time limit cut answered by their own seed's model (a few per rollout).
     `acting`: each seed's (reach, stats, per_target), as `Actors.collect` takes them."""
     steps = [a.steps(m, *args) for a, m, args in zip(actors, models, acting)]
-    done: list[Rollout | None] = [None] * len(steps)
 
-    def send(i: int, reply) -> Forward | None:
-        try:
-            return steps[i].send(reply)
-        except StopIteration as end:
-            done[i] = end.value
-            return None
+    def alone(i: int, request: Forward):  # a time limit's cut: its own seed's model
+        return answer(models[i], request, graphs[i])
 
     with torch.no_grad():
-        requests = [next(s) for s in steps]
-        while True:
-            for i in range(len(steps)):
-                while requests[i] is not None and requests[i].kind == "cut":
-                    requests[i] = send(i, answer(models[i], requests[i], graphs[i]))
-            live = [r is not None for r in requests]
-            if not any(live):
-                return done
-            if not all(live):  # the seeds take n steps each: they end together
-                raise RuntimeError("stacked seeds out of step")
-            for i, reply in enumerate(forward(models, w, readout, requests)):
-                requests[i] = send(i, reply)
+        return drive(steps, alone, partial(forward, models, w, readout))
 
 
 def unroll(models: list[Model], spaces, rollouts: list[Rollout], w: Weights, readout) -> list[tuple]:

@@ -1,4 +1,4 @@
-"""Stage 29 — table: the paper's Table I from a table spec (`tables/table1.toml`), assembled and written.
+"""Stage 30 — table: the paper's Table I from a table spec (`tables/table1.toml`), assembled and written.
 
 The spec (kgnavbench/table_spec.py) names the protocol, the presets, the rows and the comparisons
 the paper draws between rows. `run_table` runs every row and seed (`jobs`): train unless a finished
@@ -42,11 +42,11 @@ from .jobs import (
     only_rows,
     preset_rows,
     run_jobs,
-    run_jobs_on_ray,
     table_jobs,
     trains,
 )
 from .metrics import COLUMN_TITLES
+from .ray_jobs import run_jobs_on_ray
 from .table_spec import (
     CELL_KEYS,
     CELL_TITLES,

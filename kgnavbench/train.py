@@ -392,7 +392,7 @@ def stacked_update(trainers: list[Trainer]) -> None:
     if trainers[0].rl or trainers[0].dagger:
         acting = [t.acting() for t in trainers]
         actors = [t.actors for t in trainers]
-        collected = stacking.collect(actors, models, graphs, *stacking.detached(weights, readout), acting)
+        collected = stacking.collect(actors, models, graphs, *stacking.for_acting(weights, readout), acting)
         rollouts = [t.collected(r) for t, r in zip(trainers, collected)]
         replayed = stacking.unroll(models, [t.space for t in trainers], rollouts, weights, readout)
     losses = [t.loss(*args) for t, *args in zip(trainers, graphs, imitate, rollouts, replayed)]

@@ -72,6 +72,11 @@ def linked_paths(path: Path) -> list[Path]:
 def test_the_readme_is_read_in_one_sitting():
     lines = (ROOT / "README.md").read_text(encoding="utf-8").splitlines()
     assert len(lines) <= README_MAX_LINES, f"README.md has {len(lines)} lines; at most {README_MAX_LINES}"
+    # its Table I section: the one table a reader needs, the verdicts in a few lines, docs/table1.md for more
+    start = lines.index("## Table I, and how to read it")
+    end = next(n for n in range(start + 1, len(lines)) if lines[n].startswith("## "))
+    section = "\n".join(lines[start:end]).rstrip().splitlines()
+    assert len(section) <= 45, f"README's Table I section has {len(section)} lines; at most 45"
 
 
 def test_every_path_the_docs_name_exists():

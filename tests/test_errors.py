@@ -13,6 +13,8 @@ from kgnavbench import graph as graph_stage
 from kgnavbench import kitchens, tasks
 from kgnavbench.cli import main
 
+SMALL = "FloorPlan25"  # the smallest kitchen (719 states): a damaged cache file is rebuilt in seconds
+
 
 def run(capsys, *argv: str) -> tuple[int, str, str]:
     code = main(list(argv))
@@ -359,14 +361,16 @@ def test_a_runs_folder_that_cannot_be_written(capsys, tmp_path, floorplan1_tasks
     assert blocker.read_text() == "x"
 
 
-def test_json_output_stays_json_when_the_cache_is_rebuilt(capsys, tmp_path, monkeypatch, floorplan1_tasks):
-    """A damaged cache file's notice goes to stderr; stdout is exactly one JSON document."""
+def test_json_output_stays_json_when_the_cache_is_rebuilt(capsys, tmp_path, monkeypatch):
+    """A damaged cache file's notice goes to stderr; stdout is exactly one JSON document. (In SMALL, the
+    smallest kitchen: the damaged file is rebuilt in seconds.)"""
+    graph_stage.state_graph(SMALL)  # built (in seconds) where no test built it yet
     root = graph_stage.cache_dir()
-    graph_path, _ = graph_stage._cache_paths("FloorPlan1", graph_stage.VIEW_SIZE, root)
+    graph_path, _ = graph_stage._cache_paths(SMALL, graph_stage.VIEW_SIZE, root)
     saved = graph_path.read_bytes()
     try:
         graph_path.write_bytes(b"garbage")
-        argv = ["eval", "--method", "oracle", "--kitchens", "FloorPlan1", "--episodes", "1", "--json"]
+        argv = ["eval", "--method", "oracle", "--kitchens", SMALL, "--episodes", "1", "--json"]
         code, out, err = run(capsys, *argv, "--runs", str(tmp_path))
         assert code == 0, err
         assert "cannot be trusted" in err
@@ -415,16 +419,17 @@ def test_a_cached_feature_file_is_checked_not_trusted(capsys, damage, named, flo
         ("no checksum", "no checksum"),
     ],
 )
-def test_a_cached_state_graph_is_checked_not_trusted(capsys, damage, named, floorplan1_tasks):
+def test_a_cached_state_graph_is_checked_not_trusted(capsys, damage, named):
     """A state-graph file whose transitions point past its states is rebuilt, even with a checksum
     that matches it (a step would index outside the tables: a traceback, or a wrong episode)."""
     import numpy as np
 
+    graph_stage.state_graph(SMALL)  # built (in seconds) where no test built it yet
     root = graph_stage.cache_dir()
-    graph_path, _ = graph_stage._cache_paths("FloorPlan1", graph_stage.VIEW_SIZE, root)
+    graph_path, _ = graph_stage._cache_paths(SMALL, graph_stage.VIEW_SIZE, root)
     with np.load(graph_path) as z:
         arrays = {k: z[k] for k in z.files}
-    good = graph_stage.state_graph("FloorPlan1")
+    good = graph_stage.state_graph(SMALL)
     if damage == "transition out of range":
         arrays["next"][5, 0] = len(arrays["cell"]) + 10
     elif damage == "object out of range":
@@ -438,11 +443,11 @@ def test_a_cached_state_graph_is_checked_not_trusted(capsys, damage, named, floo
 
         write_with_checksum(graph_path, lambda f: np.savez(f, **arrays))
     capsys.readouterr()
-    rebuilt = graph_stage.state_graph("FloorPlan1")
+    rebuilt = graph_stage.state_graph(SMALL)
     err = capsys.readouterr().err
     assert "cannot be trusted" in err and named in err, err
     assert np.array_equal(rebuilt.next_state, good.next_state)
-    assert graph_stage.load_graph("FloorPlan1") is not None and capsys.readouterr().err == ""
+    assert graph_stage.load_graph(SMALL) is not None and capsys.readouterr().err == ""
 
 
 CHDIR = WALKER.format(reset="pass", act="return {a: 9 for a in observations}").replace(

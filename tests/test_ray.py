@@ -154,18 +154,15 @@ def _tables(out: Path, preset: str) -> dict[str, str]:
     }
 
 
-def test_the_smoke_table_under_ray_is_the_single_process_table(cluster, tmp_path, capsys):
-    common = ["table", "--preset", "smoke"]
-    assert (
-        main([*common, "--runs", str(tmp_path / "one"), "--out", str(tmp_path / "one"), "--workers", "1"])
-        == 0
-    )
-    argv = [*common, "--runs", str(tmp_path / "ray"), "--out", str(tmp_path / "ray")]
+def test_the_smoke_table_under_ray_is_the_single_process_table(cluster, smoke_table, tmp_path, capsys):
+    one, plain = smoke_table  # the same table run by worker processes on this machine
+    assert plain.returncode == 0, plain.stderr[-2000:]
+    argv = ["table", "--preset", "smoke", "--runs", str(tmp_path / "ray"), "--out", str(tmp_path / "ray")]
     assert main([*argv, "--ray", cluster.address, "--ray-node-ip", HEAD]) == 0
     printed = capsys.readouterr().out
     assert re.search(r"== ray: 0 running, \d+ done, 0 retried, 0 failed, 0 waiting", printed), printed[-2000:]
-    one, on_ray = _tables(tmp_path / "one", "smoke"), _tables(tmp_path / "ray", "smoke")
-    assert len(one) == 4 and one == on_ray
+    plain, on_ray = _tables(one, "smoke"), _tables(tmp_path / "ray", "smoke")
+    assert len(plain) == 4 and plain == on_ray
     assert not (tmp_path / "ray" / "ray").exists() or not any((tmp_path / "ray" / "ray").iterdir())
 
 
@@ -306,9 +303,9 @@ def test_a_cluster_whose_nodes_run_other_code_is_refused_at_once(cluster, tmp_pa
     """Every node is asked for its Python, torch and kgnavbench revision before anything is scheduled
     (a task that takes no CPU, pinned to the node); one that differs from the driver's is named in one
     line and nothing runs. Faked on the driver's side: its revision here is one the nodes do not run."""
-    from kgnavbench import jobs
+    from kgnavbench import ray_jobs
 
-    monkeypatch.setattr(jobs, "git_revision", lambda: "0" * 40)
+    monkeypatch.setattr(ray_jobs, "git_revision", lambda: "0" * 40)
     t0 = time.monotonic()
     argv = ["table", "--preset", "smoke", "--runs", str(tmp_path / "runs")]
     assert main([*argv, "--ray", cluster.address, "--ray-node-ip", HEAD]) == 2
@@ -321,7 +318,7 @@ def test_a_cluster_whose_nodes_run_other_code_is_refused_at_once(cluster, tmp_pa
 
 
 def test_the_environment_check_names_the_first_node_that_differs():
-    from kgnavbench.jobs import environment_problems
+    from kgnavbench.ray_jobs import environment_problems
 
     here = {"Python": "3.11.2", "torch": "2.13.0", "kgnavbench": "abc"}
     assert environment_problems(here, {"a": dict(here), "b": dict(here)}) is None
@@ -337,7 +334,7 @@ def test_the_environment_check_names_the_first_node_that_differs():
 def test_a_lost_head_ends_the_driver_with_one_line_and_the_command_that_resumes():
     """The driver's watch on the head: once its port has not answered for `lost_after` seconds, one
     line names the head and the command to run again (here given to a callback, not the process's end)."""
-    from kgnavbench.jobs import _watch_head
+    from kgnavbench.ray_jobs import _watch_head
 
     with socket.socket() as server:
         server.bind((HEAD, 0))

@@ -485,7 +485,8 @@ class Policy:
     def reset(self, agent):
         pass
     def act(self, observations, infos):
-        time.sleep(0.05)
+        if len(observations) == 1:  # slow while recording (one episode at a time), not in the evaluation
+            time.sleep(0.05)
         return {a: 4 for a in observations}
 def make_policy(config, spec):
     return Policy()

@@ -639,17 +639,15 @@ def _numbers(markdown: str) -> list[str]:
     return [line for line in markdown.splitlines() if line.startswith("| ")]
 
 
-def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cache):
+def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cache, smoke_table):
     env = {**os.environ, "KGNAVBENCH_CACHE": str(hermetic_cache)}
-    # two jobs at a time in worker processes; the killed and resumed table below runs one at a time
-    # and must come out the same (the preset fixes torch's threads)
-    whole = subprocess.run(
-        _table_cmd(tmp_path / "a", tmp_path / "a", workers=2), capture_output=True, text=True, env=env
-    )
+    # two jobs at a time in worker processes (the session's smoke table); the killed and resumed table
+    # below runs one at a time and must come out the same (the preset fixes torch's threads)
+    a, whole = smoke_table
     assert whole.returncode == 0, whole.stderr[-2000:]
-    table_a = (tmp_path / "a" / "table1-smoke.md").read_text()
+    table_a = (a / "table1-smoke.md").read_text()
     for suffix in (".csv", "-ablation.csv", ".tex"):
-        assert (tmp_path / "a" / f"table1-smoke{suffix}").stat().st_size > 500
+        assert (a / f"table1-smoke{suffix}").stat().st_size > 500
     rows = _numbers(table_a)
     spec = load_spec()
     # the table (a header, ours and the paper's per row), the ablation check (a header, 5 cells each)
@@ -658,7 +656,7 @@ def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cach
     assert "preset 'smoke'" in table_a and "Git " in table_a
 
     # the checkpoint rule: best.pt is the validation with the best SR, the latest on a tie
-    for run in (tmp_path / "a" / "train").iterdir():
+    for run in (a / "train").iterdir():
         lines = list(csv.DictReader((run / "metrics.csv").read_text().splitlines()))
         validations = [(float(r["val_sr"]), int(r["frames"])) for r in lines if r["val_sr"]]
         best = max(sr for sr, _ in validations)
@@ -666,14 +664,19 @@ def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cach
         checkpoint = runs.load_checkpoint(run / "best.pt")
         assert checkpoint["val_sr"] == pytest.approx(best, abs=0.01) and checkpoint["frames"] == latest
 
-    # killed in the middle (after the third row's training finished) and run again: the same table
+    # killed in the middle and run again: the same table. Half the runs are the first table's, finished
+    # (as a killed table leaves the runs it finished); the others train here, one job at a time, and the
+    # table is killed when the first of them has finished
     runs_b = tmp_path / "b"
+    trained = sorted((a / "train").iterdir())
+    for run in trained[: len(trained) // 2]:
+        shutil.copytree(run, runs_b / "train" / run.name)
     proc = subprocess.Popen(
         _table_cmd(runs_b, runs_b), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env
     )
     deadline = time.time() + 120
     while proc.poll() is None and time.time() < deadline:
-        if len(list(runs_b.glob("train/*/finished.json"))) >= 3:
+        if len(list(runs_b.glob("train/*/finished.json"))) > len(trained) // 2:
             break
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
@@ -684,9 +687,7 @@ def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cach
     assert "nothing to do" in again.stdout  # the finished rows were not trained again
     assert _numbers((runs_b / "table1-smoke.md").read_text()) == _numbers(table_a)
     # all done on disk: rows found finished give no ETA, rather than "about 0 min left"
-    third = subprocess.run(
-        _table_cmd(tmp_path / "a", tmp_path / "a"), capture_output=True, text=True, env=env
-    )
+    third = subprocess.run(_table_cmd(a, a), capture_output=True, text=True, env=env)
     assert third.returncode == 0 and "min left" not in third.stdout, third.stdout[-2000:]
     assert "min left" in whole.stdout  # while rows train, it is given
 
