@@ -378,3 +378,36 @@ def test_a_client_without_the_clusters_token_is_refused(cluster):
             client.wait(timeout=30)
         assert any("InvalidAuthToken" in line for line in said), "".join(said)[-2000:]
         assert not any(line.startswith("joined") for line in said)
+
+
+# the last test of the module: it kills the module's cluster's head (the fixture's teardown stops the rest)
+def test_a_head_killed_mid_table_ends_the_driver_with_one_line_that_resumes(cluster, tmp_path):
+    """The head dies (SIGKILL of its whole session: GCS, raylet, workers) while a job trains: the driver
+    ends within 90 s with exit 2 and one `kgnavbench: error:` line naming the lost head and the command
+    that resumes, not Ray's page after its own minute; the run's checkpoint stays for the resume."""
+    spec = _spec(tmp_path, _retried_preset())
+    runs = tmp_path / "runs"
+    argv = [sys.executable, "-m", "kgnavbench", "table", "--spec", str(spec), "--preset", "retried"]
+    argv += ["--runs", str(runs), "--out", str(runs), "--ray", cluster.address, "--ray-node-ip", HEAD]
+    driver = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 240
+        while (
+            not list(runs.glob("train/*/last.pt")) and driver.poll() is None and time.monotonic() < deadline
+        ):
+            time.sleep(0.1)
+        assert driver.poll() is None and list(runs.glob("train/*/last.pt")), "no job trained to a checkpoint"
+        _kill_session(cluster.head.pid)
+        killed = time.monotonic()
+        _, err = driver.communicate(timeout=120)
+        took = time.monotonic() - killed
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+    errors = [line for line in err.splitlines() if line.startswith("kgnavbench: error:")]
+    assert driver.returncode == 2 and took < 90, (driver.returncode, took, err[-2000:])
+    assert len(errors) == 1 and errors[0].startswith(
+        f"kgnavbench: error: lost the Ray cluster's head at {HEAD}:"
+    )
+    assert "again to resume" in errors[0] and "--preset retried" in errors[0] and "Traceback" not in err
+    assert list(runs.glob("train/*/last.pt"))  # what the resume starts from
