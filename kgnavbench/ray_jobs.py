@@ -28,12 +28,8 @@ import torch
 from . import claims
 from .files import NUMERICS_ENV, first_line, git_revision
 from .jobs import Job, JobOutcome, execute, time_left, trains
-from .runs import (
-    imported_training_code_sha256,
-)
-from .table_spec import (
-    TableError,
-)
+from .runs import imported_training_code_sha256
+from .table_spec import TableError
 
 # A Ray task whose worker process or node dies runs again, this many times at most; the trainer resumes
 # from the run's last.pt, so a retry continues its run. The job's own errors are not retried.

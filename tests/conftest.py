@@ -26,8 +26,8 @@ SUITE_KITCHENS = ",".join(f"FloorPlan{n}" for n in (1, 2, 5, 13, 21, 23, 25, 26,
 @pytest.fixture(scope="session", autouse=True)
 def hermetic_cache(tmp_path_factory, request):
     """Point the state-graph cache at a fresh folder, so no test reads or writes the user's cache. A run
-    of the whole suite builds its kitchens first with `kgnavbench prepare`, one process per core (about
-    45 s on 2 cores; built by the tests that need them, one at a time, they take 85)."""
+    of the whole suite builds its kitchens first with `kgnavbench prepare`, one process per core (one
+    process built them in 84 s, measured; the tests that need them would build them one at a time)."""
     root = tmp_path_factory.mktemp("kgnavbench-cache")
     old = os.environ.get("KGNAVBENCH_CACHE")
     os.environ["KGNAVBENCH_CACHE"] = str(root)
