@@ -463,15 +463,18 @@ def run_jobs(jobs: list[Job], progress=print, workers: int = 1) -> list[JobOutco
             if not outcomes[n].reused:
                 done.append((kinds[n], outcomes[n].seconds))
         return outcomes
-    # spawn: a fresh interpreter per worker (torch's thread pools do not survive a fork); one
-    # single-worker pool per job, `workers` at a time, so that a worker killed by a signal or the
-    # OOM killer loses its own job only, named, while the others go on
+    # spawn: a fresh interpreter per worker (torch's thread pools do not survive a fork); `workers`
+    # single-worker pools, so that a worker killed by a signal or the OOM killer loses its own job
+    # only, named, while the others go on. A pool whose job ended takes the next one: its interpreter
+    # has paid for the imports (about 3 s each) and a job depends on nothing its process did before,
+    # as with `workers` = 1, where one process runs them all
     progress(f"== {len(jobs)} jobs, {workers} at a time, torch on one thread each")
     context = multiprocessing.get_context("spawn")
     # the longest first, so that the last job does not run alone: the rows further down the spec
     # add components (IL, TSE, the graph) and train slower
     queue = list(reversed(range(len(jobs))))
     running: dict[concurrent.futures.Future, tuple[int, concurrent.futures.Executor]] = {}
+    idle: list[concurrent.futures.Executor] = []
     lost: list[int] = []
     try:
         while queue or running:
@@ -479,18 +482,22 @@ def run_jobs(jobs: list[Job], progress=print, workers: int = 1) -> list[JobOutco
                 n = queue.pop(0)
                 # a worker's lines, prefixed with its job (two jobs' lines interleave); picklable
                 prefix = functools.partial(print, f"{title(n)}:", flush=True)
-                pool = concurrent.futures.ProcessPoolExecutor(
-                    1, mp_context=context, initializer=end_with_parent, initargs=(os.getpid(),)
-                )
+                pool = idle.pop() if idle else None
+                if pool is None:
+                    pool = concurrent.futures.ProcessPoolExecutor(
+                        1, mp_context=context, initializer=end_with_parent, initargs=(os.getpid(),)
+                    )
                 job = dataclasses.replace(jobs[n], threads=jobs[n].threads or 1)
                 running[pool.submit(execute, job, prefix)] = (n, pool)
             finished, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
             for future in finished:
                 n, pool = running.pop(future)
-                pool.shutdown(wait=False)
+                idle.append(pool)
                 try:
                     outcomes[n] = future.result()
                 except concurrent.futures.process.BrokenProcessPool:
+                    idle.remove(pool)
+                    pool.shutdown(wait=False)
                     lost.append(n)
                     progress(
                         f"== lost {title(n)}: its worker process died (a signal or the OOM killer); "
@@ -501,7 +508,7 @@ def run_jobs(jobs: list[Job], progress=print, workers: int = 1) -> list[JobOutco
                     done.append((kinds[n], outcomes[n].seconds))
                 progress(f"== done {title(n)} in {outcomes[n].seconds / 60:.1f} min{eta()}")
     finally:
-        for _, pool in running.values():
+        for pool in [pool for _, pool in running.values()] + idle:
             pool.shutdown(wait=False, cancel_futures=True)
     if lost:
         names = "; ".join(title(n) for n in sorted(lost))

@@ -468,14 +468,15 @@ def test_eval_video_writes_a_video_that_opencv_reads_back(capsys, tmp_path, floo
     assert "must end in .mp4" in capsys.readouterr().err
 
 
-def test_max_steps_above_the_cap_records_to_the_cap(tmp_path, floorplan1_tasks):
-    """A recording never runs past the evaluation's cap: FloorPlan1's first recorded episode is one of
-    an unseen target (cap 1000), so max_steps=100,000 records 1000 actions, Stop never drawn."""
+def test_max_steps_above_the_cap_records_to_the_cap(tmp_path):
+    """A recording never runs past the evaluation's cap: FloorPlan25's first recorded episode is one of
+    a seen target in a seen kitchen (cap 100), so max_steps=100,000 records 100 actions, Stop never
+    drawn. (FloorPlan1's is an unseen target's, cap 1000: the same check, ten times longer.)"""
     path = tmp_path / "walk.rrd"
     out = record.record_episodes(
-        "random_walk", {"stop_probability": "0"}, path, kitchens=["FloorPlan1"], episodes=1, max_steps=100_000
+        "random_walk", {"stop_probability": "0"}, path, kitchens=["FloorPlan25"], episodes=1, max_steps=100_000
     )
-    assert out["steps"] == 1000
+    assert out["steps"] == 100
 
 
 SLOW_WALKER = """
