@@ -474,7 +474,12 @@ def test_max_steps_above_the_cap_records_to_the_cap(tmp_path):
     drawn. (FloorPlan1's is an unseen target's, cap 1000: the same check, ten times longer.)"""
     path = tmp_path / "walk.rrd"
     out = record.record_episodes(
-        "random_walk", {"stop_probability": "0"}, path, kitchens=["FloorPlan25"], episodes=1, max_steps=100_000
+        "random_walk",
+        {"stop_probability": "0"},
+        path,
+        kitchens=["FloorPlan25"],
+        episodes=1,
+        max_steps=100_000,
     )
     assert out["steps"] == 100
 
