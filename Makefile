@@ -36,11 +36,14 @@ baselines: $(STAMP)
 	$(BIN)/kgnavbench eval --method random_walk --episodes $(EPISODES)
 	$(BIN)/kgnavbench eval --method random_walk --success-rule visible --episodes $(EPISODES)
 
-## test: lint (rules and formatting) and the test suite
+## test: lint (rules and formatting) and the test suite, one pytest-xdist worker per core (TEST_WORKERS=;
+## 0 for one process). A test file runs whole on one worker, in its order: a module's fixtures are
+## built once, and tests/test_ray.py's one cluster ends with the test that kills its head.
+TEST_WORKERS ?= auto
 test: $(STAMP)
 	$(BIN)/ruff check kgnavbench baselines benchmarks tests docs examples
 	$(BIN)/ruff format --check kgnavbench baselines benchmarks tests docs examples
-	$(BIN)/pytest
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile
 
 lint: $(STAMP)
 	$(BIN)/ruff check kgnavbench baselines benchmarks tests docs examples

@@ -1,10 +1,15 @@
 """Shared fixtures, built once per session: a hermetic state-graph cache, FloorPlan1's tasks and the smoke
-table."""
+table. `make test` runs the suite on one pytest-xdist worker per core; what is built once is built once
+for all of them (`_made_once`)."""
 
+import fcntl
+import json
 import os
 import secrets
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -23,17 +28,45 @@ os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
 SUITE_KITCHENS = ",".join(f"FloorPlan{n}" for n in (1, 2, 5, 13, 21, 23, 25, 26, 28))
 
 
+def _made_once(tmp_path_factory, name: str, make) -> Path:
+    """A folder that `make(folder)` fills once per run of the suite: under pytest-xdist, once for all
+    its workers (the first to ask makes it under a lock; the others wait for it and read it), so that
+    two cores do not build the same thing twice. Made only when `make` returned."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        folder = tmp_path_factory.mktemp(name)
+        make(folder)
+        return folder
+    shared = tmp_path_factory.getbasetemp().parent  # the run's folder, above each worker's own
+    folder, made = shared / name, shared / f"{name}.made"
+    with open(shared / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not made.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            make(folder)
+            made.touch()
+    return folder
+
+
 @pytest.fixture(scope="session", autouse=True)
 def hermetic_cache(tmp_path_factory, request):
     """Point the state-graph cache at a fresh folder, so no test reads or writes the user's cache. A run
     of the whole suite builds its kitchens first with `kgnavbench prepare`, one process per core (one
-    process built them in 84 s, measured; the tests that need them would build them one at a time)."""
+    process built them in 84 s, measured; the tests that need them would build them one at a time),
+    once for all workers; each worker takes its own copy, since some tests damage cache files."""
     root = tmp_path_factory.mktemp("kgnavbench-cache")
     old = os.environ.get("KGNAVBENCH_CACHE")
-    os.environ["KGNAVBENCH_CACHE"] = str(root)
     if len(request.session.items) > 100:
-        argv = [sys.executable, "-m", "kgnavbench", "prepare", "--kitchens", SUITE_KITCHENS]
-        subprocess.run(argv, check=True, stdout=subprocess.DEVNULL)
+
+        def prepare(folder) -> None:
+            argv = [sys.executable, "-m", "kgnavbench", "prepare", "--kitchens", SUITE_KITCHENS]
+            env = {**os.environ, "KGNAVBENCH_CACHE": str(folder)}
+            subprocess.run(argv, check=True, stdout=subprocess.DEVNULL, env=env)
+
+        prepared = _made_once(tmp_path_factory, "kgnavbench-prepared", prepare)
+        if prepared != root:
+            shutil.copytree(prepared, root, dirs_exist_ok=True)
+    os.environ["KGNAVBENCH_CACHE"] = str(root)
     try:
         yield root
     finally:
@@ -63,8 +96,16 @@ def smoke_table(tmp_path_factory, hermetic_cache):
     """`kgnavbench table --preset smoke` as `make test` would run it, two jobs at a time in worker
     processes, run once: (its runs and output folder, the finished process). tests/test_table.py checks
     it end to end; tests/test_ray.py compares Ray's table with it."""
-    folder = tmp_path_factory.mktemp("smoke-table")
     argv = [sys.executable, "-m", "kgnavbench", "table", "--preset", "smoke", "--workers", "2"]
-    argv += ["--runs", str(folder), "--out", str(folder)]
-    env = {**os.environ, "KGNAVBENCH_CACHE": str(hermetic_cache)}
-    return folder, subprocess.run(argv, capture_output=True, text=True, env=env)
+
+    def run(folder) -> None:
+        env = {**os.environ, "KGNAVBENCH_CACHE": str(hermetic_cache)}
+        done = subprocess.run(
+            [*argv, "--runs", str(folder), "--out", str(folder)], capture_output=True, text=True, env=env
+        )
+        process = {"returncode": done.returncode, "stdout": done.stdout, "stderr": done.stderr}
+        (folder / "process.json").write_text(json.dumps(process))
+
+    folder = _made_once(tmp_path_factory, "smoke-table", run)
+    process = json.loads((folder / "process.json").read_text())
+    return folder, subprocess.CompletedProcess(argv, **process)
