@@ -38,12 +38,13 @@ baselines: $(STAMP)
 
 ## test: lint (rules and formatting) and the test suite, one pytest-xdist worker per core (TEST_WORKERS=;
 ## 0 for one process). A test file runs whole on one worker, in its order: a module's fixtures are
-## built once, and tests/test_ray.py's one cluster ends with the test that kills its head.
+## built once, and tests/test_ray.py's one cluster ends with the test that kills its head. Files are
+## handed out longest first (tests/conftest.py's LONGEST_FIRST), as collected.
 TEST_WORKERS ?= auto
 test: $(STAMP)
 	$(BIN)/ruff check kgnavbench baselines benchmarks tests docs examples
 	$(BIN)/ruff format --check kgnavbench baselines benchmarks tests docs examples
-	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 lint: $(STAMP)
 	$(BIN)/ruff check kgnavbench baselines benchmarks tests docs examples
