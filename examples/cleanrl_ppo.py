@@ -3,7 +3,7 @@ episodes of FloorPlan1's seen targets through `kgnavbench.evaluate_policy`.
 
     python examples/cleanrl_ppo.py                  # the defaults: 1.4M steps, 270 s on 2 cores
                                                     # (measured: seen-target SR 85.7%, seed 0)
-    python examples/cleanrl_ppo.py --steps 8192     # seconds: that it runs (what `make test` does)
+    python examples/cleanrl_ppo.py --steps 4096 --envs 4 --episodes 1  # seconds: what `make test` runs
 
 The env: `gym.make_vec("kgnavbench/FloorPlan1-v0", num_envs=64, ...)`, the batched NavigationVectorEnv
 (every sub-env in FloorPlan1, a training target per episode) with the training protocol's keywords:

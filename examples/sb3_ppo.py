@@ -3,7 +3,7 @@ then evaluated on Table I's fixed episodes of FloorPlan1's seen targets with `kg
 
     python examples/sb3_ppo.py                 # the defaults: 600k steps, 201 s on 2 cores
                                                # (measured: seen-target SR 86.9%, seed 0)
-    python examples/sb3_ppo.py --steps 4096    # seconds: that it runs (what `make test` does)
+    python examples/sb3_ppo.py --steps 4096 --envs 4 --episodes 1  # seconds: what `make test` runs
 
 The env: `kgnavbench/FloorPlan1-v0` (one navigator, a training target of FloorPlan1 per episode), 16
 copies through SB3's `make_vec_env`, each with
