@@ -476,19 +476,29 @@ def run_jobs(jobs: list[Job], progress=print, workers: int = 1) -> list[JobOutco
     running: dict[concurrent.futures.Future, tuple[int, concurrent.futures.Executor]] = {}
     idle: list[concurrent.futures.Executor] = []
     lost: list[int] = []
+
+    def submit(n: int) -> None:
+        # a worker's lines, prefixed with its job (two jobs' lines interleave); picklable
+        prefix = functools.partial(print, f"{title(n)}:", flush=True)
+        job = dataclasses.replace(jobs[n], threads=jobs[n].threads or 1)
+        while idle:  # an idle pool whose worker died after its last job is broken: dropped
+            pool = idle.pop()
+            try:
+                running[pool.submit(execute, job, prefix)] = (n, pool)
+                return
+            except (concurrent.futures.process.BrokenProcessPool, RuntimeError):
+                pool.shutdown(wait=False)
+        pool = concurrent.futures.ProcessPoolExecutor(
+            1, mp_context=context, initializer=end_with_parent, initargs=(os.getpid(),)
+        )
+        running[pool.submit(execute, job, prefix)] = (n, pool)
+
     try:
         while queue or running:
             while queue and len(running) < workers:
-                n = queue.pop(0)
-                # a worker's lines, prefixed with its job (two jobs' lines interleave); picklable
-                prefix = functools.partial(print, f"{title(n)}:", flush=True)
-                pool = idle.pop() if idle else None
-                if pool is None:
-                    pool = concurrent.futures.ProcessPoolExecutor(
-                        1, mp_context=context, initializer=end_with_parent, initargs=(os.getpid(),)
-                    )
-                job = dataclasses.replace(jobs[n], threads=jobs[n].threads or 1)
-                running[pool.submit(execute, job, prefix)] = (n, pool)
+                submit(queue.pop(0))
+            while idle and not queue:  # nothing left for them: their interpreters end now
+                idle.pop().shutdown(wait=False)
             finished, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
             for future in finished:
                 n, pool = running.pop(future)

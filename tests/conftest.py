@@ -43,22 +43,31 @@ def pytest_collection_modifyitems(items):
     items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))
 
 
+XDIST = os.environ.get("PYTEST_XDIST_WORKER") is not None  # a worker of `pytest -n N`
+
+
 def _made_once(tmp_path_factory, name: str, make) -> Path:
     """A folder that `make(folder)` fills once per run of the suite: under pytest-xdist, once for all
-    its workers (the first to ask makes it under a lock; the others wait for it and read it), so that
-    two cores do not build the same thing twice. Made only when `make` returned."""
-    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+    its workers (the first to ask makes it under a lock; the others wait for it and read it, and
+    must not write in it), so that two cores do not build the same thing twice. Where `make` raised,
+    the other workers fail with its error rather than try again."""
+    if not XDIST:
         folder = tmp_path_factory.mktemp(name)
         make(folder)
         return folder
     shared = tmp_path_factory.getbasetemp().parent  # the run's folder, above each worker's own
-    folder, made = shared / name, shared / f"{name}.made"
+    folder, made, failed = shared / name, shared / f"{name}.made", shared / f"{name}.failed"
     with open(shared / f"{name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
+        if failed.exists():
+            pytest.fail(f"another worker's {name} failed: {failed.read_text()}")
         if not made.exists():
-            shutil.rmtree(folder, ignore_errors=True)
             folder.mkdir()
-            make(folder)
+            try:
+                make(folder)
+            except BaseException as e:
+                failed.write_text(f"{type(e).__name__}: {e}")
+                raise
             made.touch()
     return folder
 
@@ -71,16 +80,18 @@ def hermetic_cache(tmp_path_factory, request):
     once for all workers; each worker takes its own copy, since some tests damage cache files."""
     root = tmp_path_factory.mktemp("kgnavbench-cache")
     old = os.environ.get("KGNAVBENCH_CACHE")
-    if len(request.session.items) > 100:
 
-        def prepare(folder) -> None:
-            argv = [sys.executable, "-m", "kgnavbench", "prepare", "--kitchens", SUITE_KITCHENS]
-            env = {**os.environ, "KGNAVBENCH_CACHE": str(folder)}
-            subprocess.run(argv, check=True, stdout=subprocess.DEVNULL, env=env)
+    def prepare(folder) -> None:
+        argv = [sys.executable, "-m", "kgnavbench", "prepare", "--kitchens", SUITE_KITCHENS]
+        env = {**os.environ, "KGNAVBENCH_CACHE": str(folder)}
+        subprocess.run(argv, check=True, stdout=subprocess.DEVNULL, env=env)
 
-        prepared = _made_once(tmp_path_factory, "kgnavbench-prepared", prepare)
-        if prepared != root:
-            shutil.copytree(prepared, root, dirs_exist_ok=True)
+    if len(request.session.items) > 100 and not XDIST:
+        prepare(root)
+    elif len(request.session.items) > 100:
+        shutil.copytree(
+            _made_once(tmp_path_factory, "kgnavbench-prepared", prepare), root, dirs_exist_ok=True
+        )
     os.environ["KGNAVBENCH_CACHE"] = str(root)
     try:
         yield root
@@ -110,7 +121,8 @@ def local(tmp_path, monkeypatch):
 def smoke_table(tmp_path_factory, hermetic_cache):
     """`kgnavbench table --preset smoke` as `make test` would run it, two jobs at a time in worker
     processes, run once: (its runs and output folder, the finished process). tests/test_table.py checks
-    it end to end; tests/test_ray.py compares Ray's table with it."""
+    it end to end; tests/test_ray.py compares Ray's table with it. Read it only: another worker may be
+    reading it too (copy it to run a command in it)."""
     argv = [sys.executable, "-m", "kgnavbench", "table", "--preset", "smoke", "--workers", "2"]
 
     def run(folder) -> None:
