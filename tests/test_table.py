@@ -686,12 +686,9 @@ def test_smoke_table_end_to_end_and_resumed_after_a_kill(tmp_path, hermetic_cach
     assert again.returncode == 0, again.stderr[-2000:]
     assert "nothing to do" in again.stdout  # the finished rows were not trained again
     assert _numbers((runs_b / "table1-smoke.md").read_text()) == _numbers(table_a)
-    # all done on disk: rows found finished give no ETA, rather than "about 0 min left" (in a copy: the
-    # session's smoke table is read by other tests, maybe at the same time)
-    shutil.copytree(a, tmp_path / "a")
-    third = subprocess.run(
-        _table_cmd(tmp_path / "a", tmp_path / "a"), capture_output=True, text=True, env=env
-    )
+    # all done on disk: rows found finished give no ETA, rather than "about 0 min left" (in the resumed
+    # table's folder: the session's smoke table is only read, since other tests may read it meanwhile)
+    third = subprocess.run(_table_cmd(runs_b, runs_b), capture_output=True, text=True, env=env)
     assert third.returncode == 0 and "min left" not in third.stdout, third.stdout[-2000:]
     assert "min left" in whole.stdout  # while rows train, it is given
 
@@ -1211,6 +1208,50 @@ def test_a_lost_worker_loses_its_job_only_named_and_a_rerun_resumes(tmp_path, he
     assert "1 of 2 jobs lost their worker process ([2/2] Killed (seed 0))" in done.stderr
     assert "== done [1/2] Random walk (seed 0)" in done.stdout
     assert list((tmp_path / "runs" / "eval").glob("random_walk-*/episodes/FloorPlan1.jsonl"))
+
+
+def test_a_worker_that_died_between_jobs_costs_no_job(tmp_path, monkeypatch):
+    """A worker's process takes the next job; one that died after its last job (its pool broken while
+    idle) is replaced when the next job is submitted, so no job is lost and no job runs twice. Faked in
+    this process: pools that run a job at once, the first of which breaks after its first job."""
+    import concurrent.futures
+
+    from kgnavbench import jobs
+
+    made = []
+
+    class Pool:  # a ProcessPoolExecutor of one worker, as run_jobs uses it
+        def __init__(self, *args, **kwargs):
+            self.broken, self.ran, self.shut = False, [], False
+            made.append(self)
+
+        def submit(self, fn, job, progress):
+            if self.broken:
+                raise concurrent.futures.process.BrokenProcessPool("its worker died")
+            future = concurrent.futures.Future()
+            future.set_result(fn(job, progress))
+            self.ran.append(job.seed)
+            self.broken = self is made[0]  # the first pool's worker dies once its first job is done
+            return future
+
+        def shutdown(self, wait=True, cancel_futures=False):
+            self.shut = True
+
+    monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", Pool)
+    monkeypatch.setattr(
+        jobs, "execute", lambda job, progress: jobs.JobOutcome({}, "", str(job.seed), 1.0, False)
+    )
+    spec = load_spec()
+    walk = next(row for row in spec.rows if row.method == "random_walk")
+    table = [
+        jobs.Job(spec=spec, preset=spec.preset("smoke"), row=walk, seed=seed, runs_dir=tmp_path)
+        for seed in range(5)
+    ]
+    outcomes = jobs.run_jobs(table, progress=lambda line: None, workers=2)
+    assert [o.eval_run for o in outcomes] == ["0", "1", "2", "3", "4"]
+    assert sorted(seed for pool in made for seed in pool.ran) == [0, 1, 2, 3, 4]
+    assert len(made[0].ran) == 1 and len(made) == 3  # the broken one dropped, one fresh pool in its place
+    assert all(pool.shut for pool in made)  # none left running
 
 
 def test_ship_refuses_links_odd_names_and_odd_frames_and_clears_its_leftovers(tmp_path, capsys):
