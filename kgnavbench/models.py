@@ -577,7 +577,9 @@ class ActorCritic(nn.Module):
         if state is None:
             state = self.initial_state(joint.shape[0], joint.device)
         _, h, c = self._lstm(joint[None], state)
-        return h[0], c[0]
+        # the state keeps its own dtype (fp32): under bf16 autocast on a CPU with native bf16, or on
+        # CUDA, the fused LSTM returns bf16, which the callers' fp32 state buffers cannot take
+        return h[0].to(state[0].dtype), c[0].to(state[1].dtype)
 
     def recur_sequence(self, joint: Tensor, state=None) -> Tensor:
         """The LSTM over whole sequences: joint (T, N, J), the state (h, c) (N, lstm) before their first

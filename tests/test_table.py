@@ -103,6 +103,37 @@ def test_the_committed_spec_has_the_papers_rows_ours_presets_and_comparisons():
     )
 
 
+def test_the_paper_protocol_preset_trains_as_the_paper_states_and_its_twin_is_the_same_runs():
+    """paper-protocol: the paper's own training protocol (no start curriculum, 5000-action episodes, a
+    wrong Stop a no-op, 7 agents per kitchen: 140 threads with one target each, widths 128) over the
+    paper preset's rows; paper-protocol-last the same runs with their last.pt. The options are read
+    as the trainer resolves them, so that a default changed under the preset fails here too."""
+    from kgnavbench.jobs import row_options
+    from kgnavbench.plugins import load_plugin, make_config
+
+    spec = load_spec(SPEC_FILE)
+    protocol, last = spec.presets["paper-protocol"], spec.presets["paper-protocol-last"]
+    paper = spec.presets["paper"]
+    assert protocol.frames == 40_000_000 and protocol.episodes == 100 and protocol.seeds == 3
+    assert list(protocol.rows) == list(paper.rows) and not protocol.train_kitchens
+    rows = {r.name: r for r in spec.rows}
+    row = rows["LSTM A3C"]
+    resolved = make_config(load_plugin(row.method), row_options(protocol, row))
+    assert resolved.start_curriculum == 0.0 and resolved.episode_cap == 5000
+    assert resolved.stop_ends_from is None and "stop_ends_from" not in protocol.options
+    assert resolved.wrong_stop_penalty == 0.0 and resolved.agents_per_kitchen == 7
+    assert resolved.hidden == resolved.lstm == 128 and resolved.il_fraction == 0.05
+    # everything else as the paper preset's
+    differs = {
+        k for k in {*protocol.options, *paper.options} if protocol.options.get(k) != paper.options.get(k)
+    }
+    assert differs == {"episode_cap", "start_curriculum", "stop_ends_from"}
+    assert last.checkpoint == "last" and protocol.checkpoint == ""
+    assert dataclasses.replace(last, name="paper-protocol", description="", checkpoint="") == (
+        dataclasses.replace(protocol, description="")
+    )
+
+
 GOOD = SPEC_FILE.read_text()
 # the paper presets' own seeds per row (the first: the paper preset's)
 ROW_SEEDS = (

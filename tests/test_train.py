@@ -1217,3 +1217,47 @@ def test_the_profile_benchmark_times_the_packages_own_functions(tmp_path, floorp
         assert seconds[part] > 0, part
     assert sum(v for k, v in seconds.items() if k != "the rest") <= wall + 1e-6
     assert wrapped() == before
+
+
+def _lstm_returning_bf16(monkeypatch):
+    """Make the fused LSTM return bf16 under CPU autocast, as it does on a CPU with native bf16
+    kernels (AVX512-BF16 or AMX) and on CUDA; on a CPU without them models.py runs it in fp32, so
+    without this a bf16 test would pass there unfixed."""
+    fused = models.ActorCritic._lstm
+
+    def lstm(self, joint, state, batch_sizes=None):
+        out = fused(self, joint, state, batch_sizes)
+        return tuple(t.to(torch.bfloat16) for t in out) if torch.is_autocast_enabled("cpu") else out
+
+    monkeypatch.setattr(models.ActorCritic, "_lstm", lstm)
+
+
+def test_a_bf16_training_validates_resumes_and_evaluates(capsys, tmp_path, monkeypatch, floorplan1_tasks):
+    """bf16=true end to end with an LSTM that answers in bf16: validation (run_episodes writes the
+    state into its fp32 buffers), a resume from last.pt after a crash at the second validation, and
+    `eval --run` on the finished run (the evaluation policy's act_batch keeps its state too)."""
+    _lstm_returning_bf16(monkeypatch)
+    argv = _train(tmp_path, frames=800, extra=("bf16=true", "il=true"))[3:]
+    validate, calls = train.Trainer.validate, []
+
+    def crash_at_the_second(self):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # as a kill after the first checkpoint
+        return validate(self)
+
+    monkeypatch.setattr(train.Trainer, "validate", crash_at_the_second)
+    assert main(argv) != 0 and len(calls) == 2  # "interrupted; run the same command again to resume"
+    (run_dir,) = (tmp_path / "runs" / "train").iterdir()
+    assert (
+        runs.load_checkpoint(run_dir / "last.pt")["frames"] < 800 and not (run_dir / "finished.json").exists()
+    )
+    capsys.readouterr()
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "resum" in capsys.readouterr().out.lower()
+    finished = json.loads((run_dir / "finished.json").read_text())
+    assert finished["frames"] >= 800 and finished["best_val_sr"] >= 0
+    rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
+    assert sum(1 for r in rows if r.get("val_sr") not in (None, "")) >= 2
+    evaluated = ["eval", "--method", "lstm_a3c", "--run", str(run_dir), "--runs", str(tmp_path / "runs")]
+    assert main([*evaluated, "--kitchens", "FloorPlan1", "--episodes", "1"]) == 0, capsys.readouterr().err
