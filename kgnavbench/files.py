@@ -48,23 +48,50 @@ def atomic_write(path: Path, content) -> None:
 NUMERICS_ENV = ("MKL_CBWR", "ATEN_CPU_CAPABILITY", "OMP_NUM_THREADS")
 
 
+# The CPU flags that decide which vector code paths MKL, oneDNN and ATen can take (and with them a
+# run's floats): two CPUs with the same model name (a virtual "AMD EPYC") may differ in these.
+VECTOR_FLAGS = (
+    "avx", "avx2", "fma", "f16c", "avx_vnni", "avx512f", "avx512dq", "avx512bw", "avx512vl",
+    "avx512_vnni", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16", "amx_int8",
+)  # fmt: skip
+
+
 def machine() -> dict:
     """The CPU and the numerics a run was computed with, saved beside the git revision in every run
     directory: the same code and seed give other weights on another CPU or under other vector paths
     (docs/reproducibility.md), so a run that differs from its namesake can be told why. Decides
     nothing: it is not part of any run's name."""
     cpu = platform.processor() or platform.machine()
+    flags: list[str] | None = None  # unknown off Linux
     try:
         with open("/proc/cpuinfo") as f:
-            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+            info = f.read().splitlines()
+        cpu = next((line.split(":", 1)[1].strip() for line in info if line.startswith("model name")), cpu)
+        have = next((set(line.split(":", 1)[1].split()) for line in info if line.startswith("flags")), set())
+        flags = [flag for flag in VECTOR_FLAGS if flag in have]
     except OSError:
         pass  # not Linux: platform's name stays
-    record = {"cpu": cpu, "cores": os.cpu_count(), "numerics": {k: os.environ.get(k) for k in NUMERICS_ENV}}
+    record = {
+        "cpu": cpu,
+        "vector_flags": flags,
+        "cores": os.cpu_count(),
+        "numerics": {k: os.environ.get(k) for k in NUMERICS_ENV},
+    }
     torch = sys.modules.get("torch")  # only where it is loaded: this module never imports it
     if torch is not None:
         record["torch"] = torch.__version__
         record["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
+        record["native_bf16"] = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
     return record
+
+
+def machine_key(record: dict) -> str:
+    """What a recording of a run's bytes is kept under: the CPU's model name, its vector flags and
+    torch's version ("AMD EPYC | avx avx2 f16c fma | torch 2.13.0"). The numerics are not in it: a
+    recording is made under the pinned ones (tests/test_train.py)."""
+    flags = record.get("vector_flags")
+    torch_version = str(record.get("torch", "?")).split("+")[0]
+    return f"{record.get('cpu')} | {' '.join(flags) if flags is not None else '?'} | torch {torch_version}"
 
 
 def git_revision() -> str:
