@@ -187,6 +187,11 @@ def selected_checkpoint(
         if SNAPSHOT.fullmatch(which):
             kept = sorted(p.stem for p in (directory / "snapshots").glob("frames-*.pt"))
             raise EvalError(f"--run {directory} kept no snapshot {which} (kept: {', '.join(kept) or 'none'})")
+        if (directory / "finished.json").exists():  # a shipped run: it will never have one
+            raise EvalError(
+                f"the run {directory} is finished and has no {path.name}: it was shipped without it "
+                f"(`kgnavbench ship RUN_DIR{' --last' if which == 'last' else ''}` from the run's own folder)"
+            )
         when = "at the first validation" if which == "best" else "at the first checkpoint"
-        raise EvalError(f"--run {directory} has no {path.name} yet (it is saved {when})")
+        raise EvalError(f"the run {directory} has no {path.name} yet (it is saved {when})")
     return path

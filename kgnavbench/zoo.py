@@ -83,13 +83,21 @@ def trained_run(folder: Path, record: dict, row_name: str, progress=print, unfin
     want = {key: record.get(key) for key in TRAINED_RUN_KEYS}
     nearest: tuple[int, str] | None = None  # (keys that differ, which) of the closest run, for the error
     matches: list[tuple[Path, dict]] = []
-    for run_dir, config in _run_configs(folder, record["method"]):
+    unreadable: list[tuple[Path, str]] = []
+    for run_dir, config in _run_configs(folder, record["method"], unreadable):
         differ = record_differences(config, want)
         if differ:
             if nearest is None or len(differ) < nearest[0]:
                 nearest = (len(differ), f"{run_dir} differs in {', '.join(differ[:6])}")
             continue
         matches.append((run_dir, config))
+    if not matches and unreadable:  # the run may be the damaged one: name it, not another run
+        path, why = unreadable[0]
+        more = f" (and {len(unreadable) - 1} more)" if len(unreadable) > 1 else ""
+        raise TableError(
+            f"row {row_name!r} (seed {record['seed']}): no finished {record['method']} run in {folder} "
+            f"matches, and {path} is unreadable ({why}){more}: restore it (from git, for zoo/) and run again"
+        )
     if not matches:
         hint = f"; the closest, {nearest[1]}" if nearest else ""
         raise TableError(
@@ -134,9 +142,10 @@ def _revision(config: dict) -> str:
     return one_line(str(config.get("git_revision", "?")))[:12]
 
 
-def _run_configs(folder: Path, method: str):
+def _run_configs(folder: Path, method: str, unreadable: list | None = None):
     """(run folder, its config) for each run of `method` in `folder` (its run folders, or those of its
-    train/) whose config.json reads as a dict, in order of path."""
+    train/) whose config.json reads as a dict, in order of path; `unreadable` collects the config.json
+    of a `method` run folder (by its name) that does not read, with why, so that an error can name it."""
     candidates = sorted(
         path
         for path in {*folder.glob("*/config.json"), *folder.glob("train/*/config.json")}
@@ -145,9 +154,17 @@ def _run_configs(folder: Path, method: str):
     for config_path in candidates:
         try:
             config = json.loads(config_path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            if unreadable is not None and config_path.parent.name.startswith(f"{method}-"):
+                unreadable.append((config_path, first_line(e)))
             continue  # not a run's config: nothing to match
-        if isinstance(config, dict) and config.get("method") == method:
+        if not isinstance(config, dict):
+            if unreadable is not None and config_path.parent.name.startswith(f"{method}-"):
+                unreadable.append(
+                    (config_path, f"it holds a JSON {type(config).__name__}, not a run's config")
+                )
+            continue
+        if config.get("method") == method:
             yield config_path.parent, config
 
 

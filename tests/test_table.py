@@ -738,8 +738,10 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     spec_path = tmp_path / "spec.toml"
     spec_path.write_text(
         f"{head}[presets.smoke]\n{rows}{body}"
-        f'[presets.smoke-visible]\nscore_rule = "visible"\n{rows}{body}[presets.quick]\n{rest}'
-    )  # smoke-visible: the smoke preset's evaluations under the visible rule, as paper-visible is
+        f'[presets.smoke-visible]\nscore_rule = "visible"\n{rows}{body}'
+        f'[presets.smoke-last]\ncheckpoint = "last"\n{rows}{body}[presets.quick]\n{rest}'
+    )  # smoke-visible: the smoke preset's evaluations under the visible rule, as paper-visible is;
+    # smoke-last: its runs' final weights, as paper-last
     smoke = ["table", "--spec", str(spec_path), "--preset", "smoke", "--workers", "1"]
     trained = tmp_path / "trained"
     assert main(smoke + ["--runs", str(trained), "--train-only"]) == 0
@@ -907,6 +909,23 @@ def test_train_only_then_a_zoo_of_older_code_evaluates_without_training(tmp_path
     assert main(smoke + from_zoo + ["--row", "LSTM A3C"]) == 0
     assert "used as shipped" not in capsys.readouterr().out  # the twin, trained by this checkout's code
     shutil.rmtree(twin)
+
+    # a zoo run whose config.json does not read (cut mid-way, not JSON, not a table): the error names
+    # that file, not the closest other run
+    original = (run / "config.json").read_text()
+    for damaged in (original[: len(original) // 2], "{not json", "[]"):
+        (run / "config.json").write_text(damaged)
+        assert main(smoke + from_zoo + ["--row", "LSTM A3C"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"{run / 'config.json'} is unreadable" in err, err
+        assert "the closest" not in err
+    (run / "config.json").write_text(original)
+    # the final weights of a run shipped without them: said so, naming no option `table` lacks
+    smoke_last = [*smoke[:4], "smoke-last", *smoke[5:]]
+    assert main(smoke_last + from_zoo + ["--row", "LSTM A3C"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "finished and has no last.pt: it was shipped without it" in err, err
+    assert "--run" not in err and "ship RUN_DIR --last" in err
 
     # a run missing from the zoo, or trained with other options: one line, nothing trained
     missing = run
