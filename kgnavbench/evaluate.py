@@ -616,11 +616,19 @@ def evaluate(
     return run
 
 
+# What each success rule (tasks.SUCCESS_RULES) is called in every caption, summary and table intro
+SUCCESS_RULE_TEXT = {
+    "destination": "Stop at the destination",
+    "visible": "Stop with the target visible",
+    "arrival": "arriving at the destination (Zhu et al.'s rule)",
+}
+
+
 def describe(config: EvalConfig) -> str:
     stop = "Stop ends the episode" if config.stop_ends else "a wrong Stop is a no-op"
-    rule = "Stop with the target visible" if config.success_rule == "visible" else "Stop at the destination"
+    rule = SUCCESS_RULE_TEXT[config.success_rule]
     if config.success_rule == "arrival":
-        rule, stop = "arriving at the destination (Zhu et al.'s rule)", "Stop is a no-op"
+        stop = "Stop is a no-op"
     options = ", ".join(f"{k}={v}" for k, v in config.options)
     return (
         f"{config.method}{f' ({options})' if options else ''} — success: {rule}; {stop}; "

@@ -23,6 +23,7 @@ import re
 import time
 from pathlib import Path
 
+from .evaluate import SUCCESS_RULE_TEXT
 from .files import atomic_write, git_revision, one_line
 from .intervals import (
     CANNOT_TELL,
@@ -159,13 +160,16 @@ CHECKPOINT_TEXT = {
 
 def caption(result: TableResult) -> str:
     p, pr = result.preset, result.spec.protocol
-    rule = "Stop at the destination" if pr.success_rule == "destination" else "Stop with the target visible"
+    rule = SUCCESS_RULE_TEXT[pr.success_rule]
     if p.score_rule and p.score_rule != pr.success_rule:  # (table_spec allows only visible here)
         rule = (
-            "Stop with the target visible (SAVN's rule; the evaluations run under Stop at the destination, "
-            "scored under it: Stop ends the episode under both, so the episodes are the same)"
+            f"{SUCCESS_RULE_TEXT[p.score_rule]} (SAVN's rule; the evaluations run under "
+            f"{SUCCESS_RULE_TEXT[pr.success_rule]}, scored under it: Stop ends the episode under both, so "
+            "the episodes are the same)"
         )
     stop = "Stop ends the episode" if pr.stop_ends else "a wrong Stop is a no-op"
+    if pr.success_rule == "arrival":
+        stop = "Stop is a no-op"
     one_seed = " (one seed: the interval covers episodes only)" if p.seeds == 1 and not p.row_seeds else ""
     some = p.unseen_target_kitchens
     unseen = f" (unseen targets in {len(some)} of the training kitchens: {', '.join(some)})" if some else ""
@@ -574,8 +578,8 @@ def _tested(result: TableResult) -> str:
     """'best.pt: the best validation SR; success: Stop at the destination': what a preset tests."""
     last = checkpoint_rule(result.spec, result.preset) == "last"
     checkpoint = "last.pt: the final weights" if last else "best.pt: the best validation SR"
-    visible = (result.preset.score_rule or result.spec.protocol.success_rule) == "visible"
-    return f"{checkpoint}; success: Stop {'with the target visible' if visible else 'at the destination'}"
+    rule = result.preset.score_rule or result.spec.protocol.success_rule
+    return f"{checkpoint}; success: {SUCCESS_RULE_TEXT[rule]}"
 
 
 def paired_verdict_counts(diffs: list[PairedDifference], margin: float) -> str:

@@ -422,6 +422,42 @@ def fake_result(preset_name: str = "quick") -> TableResult:
     )
 
 
+@pytest.mark.parametrize(
+    ("rule", "score_rule", "says", "never"),
+    [
+        ("destination", "", "success = Stop at the destination, Stop ends", "target visible"),
+        ("visible", "", "success = Stop with the target visible, Stop ends", "at the destination"),
+        (
+            "arrival",
+            "",
+            "success = arriving at the destination (Zhu et al.'s rule), Stop is a no-op",
+            "Stop at",
+        ),
+        ("destination", "visible", "evaluations run under Stop at the destination, scored", "arriving"),
+    ],
+)
+def test_a_caption_and_a_paired_intro_name_the_rule_the_episodes_were_scored_under(
+    rule, score_rule, says, never
+):
+    """The caption, and the paired tables' intro, name the spec's success rule (or the preset's score
+    rule) as evaluate.SUCCESS_RULE_TEXT words it: never another rule's words."""
+    from kgnavbench.table import paired_intro
+
+    result = fake_result()
+    protocol = dataclasses.replace(result.spec.protocol, success_rule=rule, stop_ends=rule != "arrival")
+    result = dataclasses.replace(
+        result,
+        spec=dataclasses.replace(result.spec, protocol=protocol),
+        preset=dataclasses.replace(result.preset, score_rule=score_rule),
+    )
+    text = caption(result)
+    assert says in text and never not in text.split("success = ")[1].split(";")[0], text
+    intro = paired_intro(result, result)
+    scored = score_rule or rule
+    words = {"destination": "Stop at the destination", "visible": "Stop with the target visible"}
+    assert f"success: {words.get(scored, 'arriving at the destination')}" in intro, intro
+
+
 def test_a_paired_difference_is_episode_by_episode_and_refuses_other_runs_or_episodes():
     """`paired_differences`: a table minus another of the same runs and episodes (the final weights
     against the rule's checkpoint): each episode's value minus the same episode's, so a row whose every
