@@ -566,8 +566,38 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous)
 
 
+# The checkout this package runs from: its default spec, tables/ and code are this folder's
+PACKAGE_CHECKOUT = Path(__file__).resolve().parent.parent
+
+
+def enclosing_checkout(folder: Path) -> Path | None:
+    """The kgnavbench checkout (a folder with kgnavbench/__init__.py and tables/table1.toml) that holds
+    `folder`, or None."""
+    for candidate in (folder, *folder.parents):
+        if (candidate / "kgnavbench" / "__init__.py").is_file() and (
+            candidate / "tables" / "table1.toml"
+        ).is_file():
+            return candidate
+    return None
+
+
+def check_checkout(folder: Path) -> None:
+    """Refuse to run from inside another checkout than the package's own (a worktree beside an editable
+    install of the main checkout): its code, its default spec and its tables/ would be the other
+    checkout's while zoo/ and runs/ are this folder's, so a table that differed would be written into
+    the other checkout's committed files."""
+    here = enclosing_checkout(folder.resolve())
+    if here is not None and here != PACKAGE_CHECKOUT:
+        raise UsageError(
+            f"this folder is in the checkout {here}, but the kgnavbench running is {PACKAGE_CHECKOUT}'s (its "
+            f"code, default --spec and tables/ would be used); run `python -m kgnavbench ...` from {here}, "
+            "which imports that checkout's code, or install it"
+        )
+
+
 def _main(argv: list[str]) -> int:
     try:
+        check_checkout(Path.cwd())
         args = build_parser().parse_args(_join_negative_values(argv))
         # every path given is made absolute once, here: a plugin that changes the working directory
         # cannot split one command's files between two folders

@@ -676,3 +676,28 @@ def test_options_that_cannot_work_together_or_a_missing_folder_are_refused_befor
     code = main([*argv, "--runs", str(tmp_path)])  # an empty runs folder: no run, no CSV, no "wrote"
     err = assert_one_line_error(code, capsys.readouterr().err, "no finished run", "nothing written")
     assert "wrote" not in err and not csv_path.exists()
+
+
+def test_a_command_run_inside_another_checkout_is_refused_naming_both(tmp_path, monkeypatch, capsys):
+    """From a worktree or copy of the repository with another checkout's kgnavbench installed, the
+    code, the default spec and tables/ would be that other checkout's while zoo/ and runs/ are this
+    folder's: one line naming both checkouts and the way out, nothing run. In the package's own
+    checkout (any folder of it) and outside any checkout, commands run."""
+    from kgnavbench.cli import PACKAGE_CHECKOUT
+
+    other = tmp_path / "worktree"
+    (other / "kgnavbench").mkdir(parents=True)
+    (other / "kgnavbench" / "__init__.py").write_text("")
+    (other / "tables").mkdir()
+    (other / "tables" / "table1.toml").write_text("")
+    (other / "zoo").mkdir()
+    for where in (other, other / "zoo"):
+        monkeypatch.chdir(where)
+        assert main(["table", "--preset", "smoke", "--jobs"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"in the checkout {other}" in err, err
+        assert f"{PACKAGE_CHECKOUT}'s" in err and "python -m kgnavbench" in err
+    for where in (PACKAGE_CHECKOUT / "docs", tmp_path):
+        monkeypatch.chdir(where)
+        assert main(["methods"]) == 0
+        capsys.readouterr()
