@@ -343,6 +343,12 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
         raise TableError(f"{path}: rows: a row name is used twice")
     for preset in presets.values():
         runs = preset.rows or names
+        fewer = [(n, k) for n, k in preset.row_seeds.items() if k <= preset.seeds]
+        if fewer:  # a row's extra seeds follow every job of the first `seeds`: it cannot have fewer
+            raise TableError(
+                f"{path}: presets.{preset.name}.row_seeds: {fewer[0][0]!r} = {fewer[0][1]} is not more than "
+                f"the preset's seeds = {preset.seeds}; row_seeds is for rows that need more"
+            )
         elsewhere = [n for n in preset.row_seeds if n not in runs]
         if elsewhere:
             raise TableError(

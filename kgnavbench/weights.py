@@ -73,8 +73,17 @@ def read_weights(run: str | Path, method: str, which: str = "best") -> Weights:
         trained = record.get("method")
     except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, one line naming it
         raise EvalError(f"checkpoint {source} is corrupt ({type(e).__name__}: {first_line(e)})") from e
-    if checksum_matches(source, data) is False:
+    matches = checksum_matches(source, data)
+    if matches is False:
         raise EvalError(f"checkpoint {source} does not match its checksum: it changed after it was written")
+    if matches is None and (Path(run) / "finished.json").exists():
+        # a finished run's checkpoints were all written with their checksums, and `ship` copies them:
+        # one without is a file nobody can vouch for (an unfinished run's last.pt may lack one: a
+        # writer killed between the two files)
+        raise EvalError(
+            f"checkpoint {source} has no checksum ({source.name}.sha256) although the run is finished: "
+            "restore the checksum with the weights it was written with (from git, for zoo/)"
+        )
     if trained != method:
         raise EvalError(f"{source} holds weights trained by {trained!r} (its own record), not {method!r}")
     # a checkpoint is what it says it is: its own record of options, kitchens, seed and frames must

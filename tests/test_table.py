@@ -296,18 +296,22 @@ def test_a_preset_can_evaluate_unseen_targets_in_some_kitchens_and_its_caption_s
 
 
 def test_a_row_can_have_its_own_seeds_which_follow_every_other_job_and_the_caption_says_so():
-    more = 'row_seeds = { "+KG" = 5, "IL" = 4, "LSTM A3C" = 2 }\n'
+    more = 'row_seeds = { "+KG" = 5, "IL" = 4 }\n'
     spec = parse_spec(GOOD.replace(ROW_SEEDS, more, 1))
     preset, before = spec.presets["paper"], parse_spec(GOOD.replace(ROW_SEEDS, "", 1)).presets["paper"]
     assert (preset.seeds_of("+KG"), preset.seeds_of("IL"), preset.seeds_of("FF A3C")) == (5, 4, 3)
     jobs = [(row.name, seed) for row, seed in table_jobs(spec, preset)]
-    # the preset's seeds of every row first, in the old order but for LSTM A3C's third seed; then the
-    # extra seeds, row by row in the spec's order: adding seeds renumbers none of the first seeds' jobs
+    # the preset's seeds of every row first, in the old order; then the extra seeds, row by row in the
+    # spec's order: adding seeds renumbers none of the first seeds' jobs
     old = [(row.name, seed) for row, seed in table_jobs(spec, before)]
     assert len(old) == 30  # the paper preset's ten rows, 3 seeds each
-    assert jobs[: len(old) - 1] == [job for job in old if job != ("LSTM A3C", 2)]
-    assert jobs[len(old) - 1 :] == [("IL", 3), ("+KG", 3), ("+KG", 4)]
-    assert "3 seeds (+KG: 5; IL: 4; LSTM A3C: 2);" in caption(TableResult(spec, preset, [], 60.0, "abc"))
+    assert jobs[: len(old)] == old
+    assert jobs[len(old) :] == [("IL", 3), ("+KG", 3), ("+KG", 4)]
+    assert "3 seeds (+KG: 5; IL: 4);" in caption(TableResult(spec, preset, [], 60.0, "abc"))
+    # a row's own seeds are more than the preset's: fewer, or as many, is refused by name
+    for n in (2, 3):
+        with pytest.raises(TableError, match=f"'LSTM A3C' = {n} is not more than the preset's seeds = 3"):
+            parse_spec(GOOD.replace(ROW_SEEDS, f'row_seeds = {{ "LSTM A3C" = {n} }}\n', 1))
     # presets whose rows have other seeds are other runs: no paired difference between them
     from kgnavbench.table_statistics import check_same_runs
 

@@ -1323,6 +1323,27 @@ def test_a_bf16_training_validates_resumes_and_evaluates(capsys, tmp_path, monke
     assert main([*evaluated, "--kitchens", "FloorPlan1", "--episodes", "1"]) == 0, capsys.readouterr().err
 
 
+def test_a_finished_runs_checkpoint_without_its_checksum_is_refused(capsys, tmp_path, floorplan1_tasks):
+    """A finished run's checkpoints were written with their checksums (and `ship` copies them): one
+    whose .sha256 was deleted is refused in one line by `eval --run`, not used unchecked."""
+    assert main(_train(tmp_path)[3:]) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    argv = ["eval", "--method", "lstm_a3c", "--run", str(run_dir), "--runs", str(tmp_path / "runs")]
+    argv += ["--kitchens", "FloorPlan1", "--episodes", "1"]
+    for name in ("best", "last"):
+        checksum = run_dir / f"{name}.pt.sha256"
+        kept = checksum.read_bytes()
+        checksum.unlink()
+        assert main([*argv, "--checkpoint", name]) == 2
+        err = capsys.readouterr().err
+        assert f"{name}.pt has no checksum ({name}.pt.sha256) although the run is finished" in err, err
+        assert err.count("\n") == 1
+        checksum.write_bytes(kept)
+    assert not (tmp_path / "runs" / "eval").exists() or not list(
+        (tmp_path / "runs" / "eval").glob("*/table.md")
+    )
+
+
 if __name__ == "__main__":  # python tests/test_train.py --record-weights [--samples]
     import tempfile
 
