@@ -88,8 +88,9 @@ class TrainOptions:
     value_weight: float = 0.5  # alpha: weight of the value loss
     entropy: float = 0.01  # weight of the entropy bonus
     max_grad_norm: float = 10.0
-    # bfloat16 autocast (CPU). Off by default: on a CPU without native bf16 (no AVX512-BF16 or AMX)
-    # autocast's bf16 products run in ATen's reference kernels, ten times slower (docs/training.md)
+    # bfloat16 autocast (on CUDA always). On a CPU it checks the arithmetic a GPU runs; it is no faster
+    # even with native bf16 (AVX512-BF16 or AMX), and without it the products run in ATen's reference
+    # kernels, ten times slower (measured: docs/training.md)
     bf16: bool = False
     hidden: int = 256  # siamese / fusion width
     lstm: int = 256
