@@ -95,11 +95,13 @@ def seed(text: str) -> int:
 
 
 def seed_list(text: str) -> tuple[int, ...]:
-    """'0,1,2' -> (0, 1, 2): distinct seeds."""
+    """'2,0,1' -> (0, 1, 2): distinct seeds, sorted. A stacked job's seeds are part of its runs' names
+    (`runs.run_record`'s stacked_seeds), so the same seeds in another order must be the same job, not
+    a second training into new run folders with the same weights."""
     seeds = tuple(seed(part.strip()) for part in text.split(","))
     if len(set(seeds)) != len(seeds):
         raise argparse.ArgumentTypeError(f"{text!r}: a seed appears twice")
-    return seeds
+    return tuple(sorted(seeds))
 
 
 def writable_folder(path: Path, what: str) -> None:
@@ -169,8 +171,10 @@ def preset_options(p: argparse.ArgumentParser, default: str, what: str) -> None:
     runs_option(p)
 
 
-def seed_option(p: argparse.ArgumentParser, what: str) -> None:
-    p.add_argument("--seed", type=seed, default=0, help=f"seed of {what} (default 0)")
+def seed_option(p: argparse.ArgumentParser, what: str, default: int | None = 0) -> None:
+    """--seed; default=None where a command must tell a given --seed 0 from none (`train`: not with
+    --seeds), the command then taking 0 for None."""
+    p.add_argument("--seed", type=seed, default=default, help=f"seed of {what} (default 0)")
 
 
 def device_option(p: argparse.ArgumentParser) -> None:
@@ -368,8 +372,10 @@ def train_arguments(sub) -> argparse.ArgumentParser:
         "--preset",
         metavar="NAME",
         help="train under a Table I preset's protocol (quick, paper, ... of the spec): its options "
-        "(--set's win), frames and kitchens; the run is the one `kgnavbench table` trains for a row "
-        "with the same options. Without it: the plugin's own defaults, 10M frames",
+        "(--set's win), frames and kitchens; for one seed (--seed, default 0, or one --seeds) the run is "
+        "the one `kgnavbench table` trains for a row with the same options and seed. Several --seeds "
+        "train stacked runs, runs of their own that the table does not reuse (it trains one run per "
+        "seed). Without --preset: the plugin's own defaults, 10M frames",
     )
     p.add_argument(
         "--spec", type=Path, help="the table spec --preset comes from (default tables/table1.toml)"
@@ -380,13 +386,17 @@ def train_arguments(sub) -> argparse.ArgumentParser:
         type=frames,
         help="frames (agent steps) to train (default: the preset's, else 10,000,000)",
     )
-    seed_option(p, "the run: its weights, agents and episodes")
+    seed_option(p, "the run: its weights, agents and episodes", default=None)
     p.add_argument(
         "--seeds",
         type=seed_list,
         metavar="S,S,...",
-        help="train these seeds in one process, each a run of its own, their networks stacked into one "
-        "(faster than one by one at the same cores: docs/speed.md); one seed is --seed's run",
+        help="train these seeds (in any order: they are sorted) in one process, their networks stacked "
+        "into one, each a stacked run of its own (config.json's stacked_seeds), not the run of that "
+        "seed that --seed or `kgnavbench table` trains. Measured no faster on a CPU: 3 seeds stacked "
+        "made 0.97x (+IL+TSE) and 0.95x (+KG+Attention) the frames/s of one seed alone (paper preset, "
+        "docs/speed.md), so on a CPU train seeds as separate processes; not measured on a GPU. One "
+        "seed is --seed's run",
     )
     p.add_argument("--kitchens", metavar="A,B", help="only these training kitchens (default: all 20)")
     runs_option(p)
@@ -667,7 +677,7 @@ def train_problems(args: argparse.Namespace) -> list[str]:
         problems.append("--spec names where --preset comes from: give --preset too")
     _recording(problems, args)
     _creatable_folder(problems, args.runs, "--runs")
-    if args.seeds is not None and args.seed:
+    if args.seeds is not None and args.seed is not None:  # (--seed 0 too: its default is None here)
         problems.append("--seeds names every seed to train: not with --seed")
     if args.seeds is not None and len(args.seeds) > 1 and args.record is not None:
         problems.append("--record records one run's training curves: not with several --seeds")

@@ -48,7 +48,7 @@ from .evaluate import SEEN_CAP, UNSEEN_CAP, EvalConfig, evaluate
 from .graph import build_all, cache_dir
 from .kitchens import KITCHEN_NAMES, check_name, kitchen_summary, load_kitchen
 from .plugins import PluginError, load_plugin, parse_options, plugin_sources
-from .tasks import load_tasks
+from .tasks import SUCCESS_RULES, load_tasks
 from .walk import walk
 from .weights import selected_checkpoint
 
@@ -256,6 +256,24 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+# the success rules a training run takes: TrainOptions.check refuses "arrival" (an evaluation rule,
+# Zhu et al.'s, whose Stop is a no-op), so a bad value is told these, not every rule evaluation takes
+TRAINING_SUCCESS_RULES = tuple(rule for rule in SUCCESS_RULES if rule != "arrival")
+
+
+def check_training_success_rule(method: str, options: dict) -> None:
+    """A UsageError for a success_rule that is no rule at all (a typo), naming only the rules training
+    takes; "arrival" is left to TrainOptions.check, whose message says it is an evaluation rule. Only for
+    a plugin whose Config is a TrainOptions (another plugin's success_rule, or none, is its own)."""
+    from .runs import TrainOptions
+
+    rule = options.get("success_rule")
+    if rule is None or rule in SUCCESS_RULES:
+        return
+    if issubclass(load_plugin(method).config_class, TrainOptions):
+        raise UsageError(f"success_rule must be one of {TRAINING_SUCCESS_RULES} to train, not {rule!r}")
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
     from .runs import train_seeds
@@ -270,12 +288,22 @@ def cmd_train(args: argparse.Namespace) -> int:
         options = {**preset.options, **options}
         frames = args.frames if args.frames is not None else preset.frames
         kitchens = kitchens or preset.train_kitchens
+    check_training_success_rule(args.method, options)
     arguments.writable_folder(args.runs, "--runs")
+    # --seed's default is None (so that --seed 0 with --seeds is refused): no seed given is seed 0
+    seeds = args.seeds or (args.seed if args.seed is not None else 0,)
+    if args.preset is not None and len(seeds) > 1:  # --preset's runs are the table's for one seed only
+        print(
+            f"note: --seeds {','.join(map(str, seeds))} trains stacked runs of their own (config.json's "
+            f"stacked_seeds), which `kgnavbench table --preset {args.preset}` does not reuse: it trains "
+            "one run per seed (train those with --seed S)",
+            flush=True,
+        )
     directories = train_seeds(
         args.method,
         options,
         frames=frames,
-        seeds=args.seeds or (args.seed,),
+        seeds=seeds,
         kitchens=kitchens,
         runs_dir=args.runs,
         progress=lambda line: print(line, flush=True),

@@ -138,6 +138,7 @@ def evaluate_policy(
     kitchens=None,
     episodes: int = EPISODES_PER_TARGET,
     success_rule: str = "destination",
+    stop_noop: bool = False,
     seed: int = 0,
     deterministic: bool = False,
     observation: str = "dict",
@@ -156,7 +157,10 @@ def evaluate_policy(
     episode_start=None, deterministic=False)` (a trained SB3 model; a recurrent one's state is kept per
     agent through `episode_start`). observation="box": the policy gets the Gymnasium envs' flat Box
     instead, one float32 row of 1274 per agent (`vecenv.BOX_PARTS`), as a model trained on
-    observation="box" expects. targets="seen": only the seen targets of training kitchens (Table I's
+    observation="box" expects. `success_rule`: "destination" (default, the paper's), "visible"
+    (SAVN's) or "arrival" (Zhu et al.'s: arriving succeeds, by any action); `stop_noop`: a Stop that
+    does not succeed is a no-op instead of ending the episode (eval's --stop-noop; "arrival" implies
+    it). targets="seen": only the seen targets of training kitchens (Table I's
     seen/seen cells), "all" (default): every target. `timeout`: seconds one call of the policy may
     take before the evaluation ends with an EvalError naming the kitchen and step (as eval's
     --step-timeout; a policy that defeats it ends the process with that line); None (default): no
@@ -179,6 +183,8 @@ def evaluate_policy(
         raise EvalError(f"evaluate_policy's progress must be callable (print, say), got {ascii(progress)}")
     if not isinstance(deterministic, bool):
         raise EvalError(f"evaluate_policy's deterministic must be true or false, got {ascii(deterministic)}")
+    if not isinstance(stop_noop, bool):
+        raise EvalError(f"evaluate_policy's stop_noop must be true or false, got {ascii(stop_noop)}")
     if targets not in ("all", "seen"):
         raise EvalError(f"unknown targets {targets!r}; choose 'all' or 'seen'")
     if timeout is not None and (
@@ -192,6 +198,7 @@ def evaluate_policy(
     config = EvalConfig(
         method="evaluate_policy",
         success_rule=success_rule,
+        stop_ends=not stop_noop and success_rule != "arrival",  # as eval's: arrival makes Stop a no-op
         split=split,
         kitchens=tuple(kitchens or ()),
         episodes_per_target=episodes,

@@ -23,6 +23,7 @@ against its single-seed one.
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 
 import torch
@@ -54,6 +55,13 @@ def check_stackable(config: ModelConfig, bf16: bool) -> None:
             "seeds stack for the LSTM rows over cached features (the graph's accumulated 'nodes' "
             f"readout, or no graph) in fp32; not with {', '.join(problems)}: train such seeds one by one"
         )
+
+
+def seed_progress(run):
+    """`run` (a `runs.Run`) with each progress line begun by its seed, "seed 1: ...": a stacked job's
+    seeds print their progress, validation and "finished" lines to one stream, interleaved."""
+    say = run.progress
+    return dataclasses.replace(run, progress=lambda line: say(f"seed {run.seed}: {line}"))
 
 
 def parameter_names(config: ModelConfig) -> list[str]:

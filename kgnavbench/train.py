@@ -471,7 +471,10 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
         if ranks.world > 1:
             raise TrainError("stacked seeds run in one process: not under torchrun")
         stacking.check_stackable(model_config, options.bf16)
-    sessions = [open_session(r, options, model_config, rl, ranks) for r in (run, *run.stacked)]
+    seeds = (run, *run.stacked)
+    if run.stacked:  # one stream for every seed's lines: each says which seed it is
+        seeds = tuple(stacking.seed_progress(r) for r in seeds)
+    sessions = [open_session(r, options, model_config, rl, ranks) for r in seeds]
     while not all(s.done for s in sessions):
         behind = min(s.trainer.frames for s in sessions if not s.done)
         group = [s for s in sessions if not s.done and s.trainer.frames == behind]

@@ -118,6 +118,7 @@ def test_the_examples_run_and_end_in_a_json_summary(example, hermetic_cache):
         ({"episodes": "2"}, "episodes must be a whole number, got '2'"),
         ({"progress": 3}, "progress must be callable"),
         ({"deterministic": "yes"}, "deterministic must be true or false"),
+        ({"stop_noop": "yes"}, "stop_noop must be true or false"),
         ({"timeout": 0}, "timeout must be seconds"),
         ({"timeout": float("nan")}, "timeout must be seconds"),
         ({"timeout": "5"}, "timeout must be seconds"),
@@ -191,3 +192,24 @@ def test_a_policy_call_past_the_timeout_ends_the_evaluation_with_where_it_waited
     from kgnavbench import plugins
 
     assert plugins.step_timeout is None  # the limit was the call's own
+
+
+def test_the_arrival_rule_evaluates_with_stop_a_no_op_as_eval_does(tmp_path, monkeypatch, floorplan1_tasks):
+    """success_rule="arrival" was always refused (its EvalConfig kept stop_ends): it implies a no-op
+    Stop, as eval's --success-rule arrival does, and gives eval's summary for the same actions."""
+    steps = {"n": 0}
+
+    def turner(observations):  # three right turns, then Stop: a no-op, so every episode runs to its cap
+        steps["n"] += 1
+        return np.full(len(observations["features"]), STOP if steps["n"] >= 4 else 4)
+
+    got = kgnavbench.evaluate_policy(turner, kitchens=["FloorPlan1"], episodes=1, success_rule="arrival")
+    (tmp_path / "baselines").mkdir()
+    (tmp_path / "baselines" / "turner.py").write_text(TURNER)
+    monkeypatch.chdir(tmp_path)
+    config = EvalConfig(
+        "turner", success_rule="arrival", stop_ends=False, kitchens=("FloorPlan1",), episodes_per_target=1
+    )
+    want = evaluate(config, tmp_path / "runs", progress=lambda line: None).summary
+    assert got["summary"] == summary_as_json(want)
+    assert min(m["episode_length"] for m in got["summary"].values() if m["episodes"]) > 4

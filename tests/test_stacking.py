@@ -18,7 +18,7 @@ import torch
 from test_train import TINY, tiny_options, tiny_run  # (pytest puts tests/ on the path)
 
 from kgnavbench import models, runs, train, zoo
-from kgnavbench.cli import main
+from kgnavbench.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -140,3 +140,106 @@ def test_a_killed_stacked_job_resumes_every_seed(tmp_path, hermetic_cache):
         assert a["frames"] == b["frames"] == 840 and a["updates"] == b["updates"]
         for key in a["model"]:
             assert torch.equal(a["model"][key], b["model"][key]), (ra.name, key)
+
+
+def _fake_train_seeds(monkeypatch, tmp_path: Path) -> list[dict]:
+    """runs.train_seeds replaced by one that records what the CLI asked for and trains nothing."""
+    calls: list[dict] = []
+
+    def fake(method, options, frames, seeds, **rest):
+        calls.append({"method": method, "options": options, "frames": frames, "seeds": seeds})
+        return [tmp_path / f"run-{s}" for s in seeds]
+
+    monkeypatch.setattr(runs, "train_seeds", fake)
+    return calls
+
+
+def test_an_explicit_seed_with_seeds_is_refused_seed_0_too_and_no_seed_is_seed_0(
+    capsys, tmp_path, monkeypatch
+):
+    calls = _fake_train_seeds(monkeypatch, tmp_path)
+    for given in ("0", "3"):  # 0 was let through: the check read --seed's default 0 as none given
+        argv = ["train", "--method", "lstm_a3c", "--seed", given, "--seeds", "1,2", "--runs", str(tmp_path)]
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "--seeds names every seed to train: not with --seed" in err, err
+    assert calls == []
+    assert main(["train", "--method", "lstm_a3c", "--runs", str(tmp_path)]) == 0
+    assert main(["train", "--method", "lstm_a3c", "--seed", "0", "--runs", str(tmp_path)]) == 0
+    assert [c["seeds"] for c in calls] == [(0,), (0,)]  # no --seed is seed 0, today's run
+
+
+def test_the_same_seeds_in_another_order_are_the_same_stacked_job(capsys, tmp_path, monkeypatch):
+    """The seeds are part of a stacked run's name: 2,1 and 1,2 must be one job, not a second training
+    into new run folders with the same weights."""
+    calls = _fake_train_seeds(monkeypatch, tmp_path)
+    for seeds in ("2,1", "1,2", "2, 0,1"):
+        assert main(["train", "--method", "lstm_a3c", "--seeds", seeds, "--runs", str(tmp_path)]) == 0
+    assert [c["seeds"] for c in calls] == [(1, 2), (1, 2), (0, 1, 2)]
+    plugin = runs.load_plugin("lstm_a3c")
+    config = plugin.config({})
+    names = {
+        runs.run_directory("r", runs.run_record(plugin, config, 100, 1, ("FloorPlan1",), stacked=seeds))
+        for seeds in (calls[0]["seeds"], calls[1]["seeds"])
+    }
+    assert len(names) == 1
+    capsys.readouterr()
+    assert main(["train", "--method", "lstm_a3c", "--seeds", "2,1,2", "--runs", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'2,1,2': a seed appears twice" in err, err
+    assert len(calls) == 3
+
+
+def test_preset_with_several_seeds_says_the_table_does_not_reuse_them(capsys, tmp_path, monkeypatch):
+    calls = _fake_train_seeds(monkeypatch, tmp_path)
+    argv = ["train", "--method", "lstm_a3c", "--preset", "quick", "--runs", str(tmp_path)]
+    assert main([*argv, "--seeds", "0,1"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert (
+        out[0].startswith("note: --seeds 0,1 trains stacked runs of their own") and "does not reuse" in out[0]
+    )
+    assert sum("does not reuse" in line for line in out) == 1
+    for one in (["--seeds", "1"], ["--seed", "1"], []):  # one seed: the table's run, no note
+        assert main([*argv, *one]) == 0
+        assert "does not reuse" not in capsys.readouterr().out
+    assert len(calls) == 4
+
+
+def test_train_help_says_what_stacked_runs_are_and_what_stacking_measured(capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["train", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    speed = (ROOT / "docs" / "speed.md").read_text()
+    assert "Several --seeds train stacked runs, runs of their own that the table does not reuse" in text
+    assert "faster than one by one" not in text and "Measured no faster on a CPU" in text
+    for row, ratio in (("+IL+TSE", "0.97x"), ("+KG+Attention", "0.95x")):  # the numbers docs/speed.md has
+        assert f"{ratio} ({row})" in text and f"| {row} |" in speed and f"| {ratio} |" in speed
+
+
+def test_a_success_rule_that_is_none_names_only_the_rules_training_takes(capsys, tmp_path, monkeypatch):
+    calls = _fake_train_seeds(monkeypatch, tmp_path)
+    argv = ["train", "--method", "lstm_a3c", "--runs", str(tmp_path), "--set"]
+    assert main([*argv, "success_rule=bogus"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "one of ('visible', 'destination') to train, not 'bogus'" in err, err
+    assert "arrival" not in err
+    monkeypatch.undo()  # the real train_seeds: arrival is refused by TrainOptions, as an evaluation rule
+    assert main([*argv, "success_rule=arrival"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'arrival' is an evaluation rule" in err, err
+    assert calls == []
+
+
+def test_a_stacked_jobs_lines_each_say_their_seed_and_a_single_seeds_are_as_before(capsys, tmp_path):
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    argv = ["train", "--method", "lstm_a3c", "--frames", "70", "--kitchens", "FloorPlan1", *sets]
+    assert main([*argv, "--seeds", "1,2", "--runs", str(tmp_path / "stacked")]) == 0
+    lines = capsys.readouterr().out.splitlines()[:-2]  # (the last two: the run directories)
+    assert lines and all(line.startswith(("seed 1: ", "seed 2: ")) for line in lines), lines
+    for seed in (1, 2):
+        ours = [line for line in lines if line.startswith(f"seed {seed}: ")]
+        assert any("validation: SR" in line for line in ours) and any(" frames/s" in line for line in ours)
+        assert ours[0].startswith(f"seed {seed}: training lstm_a3c") and "finished lstm_a3c" in ours[-1]
+    assert main([*argv, "--seed", "1", "--runs", str(tmp_path / "alone")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("training lstm_a3c") and not any(line.startswith("seed ") for line in lines)
