@@ -3,6 +3,7 @@ README.md and docs/*.md name exists."""
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -110,3 +111,28 @@ def test_each_stage_imports_only_the_stages_before_it():
                     if place.get(n, -1) >= place[stage]
                 ]
     assert not later, "stages that import a stage after them:\n" + "\n".join(later)
+
+
+def _zoo_runs_by_preset() -> tuple[dict[str, int], dict[str, float]]:
+    """From zoo/ itself: each preset's runs (the first preset zoo/README.md's listing names for each
+    run, as `kgnavbench ship` writes it) and their training time in core-hours (finished.json)."""
+    listing = (ROOT / "zoo" / "README.md").read_text().split("<!-- the listing below")[1].split("<!-- end")[0]
+    runs, hours = {}, {}
+    for line in listing.splitlines():
+        match = re.match(r"\| `([^`]+)` \| [^|]+ \| ([^|,]+)[^|]* \|", line)
+        if match:
+            run, preset = match.group(1), match.group(2).strip()
+            finished = json.loads((ROOT / "zoo" / run / "finished.json").read_text())
+            runs[preset] = runs.get(preset, 0) + 1
+            hours[preset] = hours.get(preset, 0.0) + finished["seconds"] / 3600
+    return runs, hours
+
+
+def test_the_readmes_zoo_counts_and_core_hours_are_the_zoos():
+    """The README's count of zoo/'s runs per preset and the paper preset's core-hours are computed here
+    from zoo/ (never written into this test): a shipped run that the prose does not count fails."""
+    text = " ".join((ROOT / "README.md").read_text().split())
+    runs, hours = _zoo_runs_by_preset()
+    assert f"`zoo/` holds {runs['paper']} runs of 40M frames of the paper preset" in text
+    assert f"and {runs.get('paper-protocol', 0)} of the paper-protocol preset" in text
+    assert f"{hours['paper']:.1f} core-hours for its {runs['paper']} runs in `zoo/`" in text
