@@ -620,6 +620,10 @@ def test_eval_checkpoint_chooses_best_or_last(capsys, tmp_path, floorplan1_tasks
     assert main(["eval", "--method", "random_walk", "--checkpoint", "last", "--runs", str(tmp_path)]) == 2
     assert "give --run DIR too" in capsys.readouterr().err
     (run_dir / "last.pt").unlink()
+    assert main([*base, "--checkpoint", "last"]) == 2  # a finished run without it: shipped so
+    err = capsys.readouterr().err
+    assert "is finished and has no last.pt: it was shipped without it" in err and err.count("\n") == 1
+    (run_dir / "finished.json").unlink()  # a run still training: it will have one
     assert main([*base, "--checkpoint", "last"]) == 2
     err = capsys.readouterr().err
     assert "has no last.pt yet" in err and err.count("\n") == 1
