@@ -136,3 +136,12 @@ def test_the_readmes_zoo_counts_and_core_hours_are_the_zoos():
     assert f"`zoo/` holds {runs['paper']} runs of 40M frames of the paper preset" in text
     assert f"and {runs.get('paper-protocol', 0)} of the paper-protocol preset" in text
     assert f"{hours['paper']:.1f} core-hours for its {runs['paper']} runs in `zoo/`" in text
+
+
+def test_the_training_codes_files_are_listed_as_runs_names_them():
+    """docs/reproducibility.md lists the files whose syntax trees name a run: runs.TRAINING_CODE's."""
+    from kgnavbench.runs import TRAINING_CODE
+
+    text = " ".join((ROOT / "docs" / "reproducibility.md").read_text().split())
+    listed = ", ".join(f"`{name}`" for name in TRAINING_CODE)
+    assert f"the training code ({listed}: `runs.TRAINING_CODE`" in text
