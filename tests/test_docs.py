@@ -145,3 +145,20 @@ def test_the_training_codes_files_are_listed_as_runs_names_them():
     text = " ".join((ROOT / "docs" / "reproducibility.md").read_text().split())
     listed = ", ".join(f"`{name}`" for name in TRAINING_CODE)
     assert f"the training code ({listed}: `runs.TRAINING_CODE`" in text
+
+
+def _cannot_tell(preset: str) -> tuple[int, int]:
+    """(SR cells, SR cells whose verdict is cannot tell) of a committed ablation CSV."""
+    import csv
+
+    lines = (ROOT / "tables" / f"table1-{preset}-ablation.csv").read_text().splitlines()[1:]
+    sr = [r for r in csv.DictReader(lines) if r["metric"] == "SR"]
+    return len(sr), sum(r["verdict"] == "cannot tell" for r in sr)
+
+
+def test_the_readmes_cannot_tell_counts_are_the_committed_tables():
+    """The README's counts of SR cells that cannot tell, computed from the committed ablation CSVs."""
+    text = " ".join((ROOT / "README.md").read_text().split())
+    cells, last = _cannot_tell("paper-last")
+    rule = _cannot_tell("paper")[1]
+    assert f"Final weights: {last} of {cells} SR cells *cannot tell* (rule: {rule})" in text
