@@ -614,6 +614,8 @@ def check_checkout(folder: Path) -> None:
     install of the main checkout): its code, its default spec and its tables/ would be the other
     checkout's while zoo/ and runs/ are this folder's, so a table that differed would be written into
     the other checkout's committed files."""
+    if enclosing_checkout(PACKAGE_CHECKOUT) != PACKAGE_CHECKOUT:
+        return  # an installed package (site-packages), not a checkout's code: nothing to mix up
     here = enclosing_checkout(folder.resolve())
     if here is not None and here != PACKAGE_CHECKOUT:
         raise UsageError(
@@ -625,8 +627,8 @@ def check_checkout(folder: Path) -> None:
 
 def _main(argv: list[str]) -> int:
     try:
+        args = build_parser().parse_args(_join_negative_values(argv))  # (--help answers anywhere)
         check_checkout(Path.cwd())
-        args = build_parser().parse_args(_join_negative_values(argv))
         # every path given is made absolute once, here: a plugin that changes the working directory
         # cannot split one command's files between two folders
         for name, value in vars(args).items():

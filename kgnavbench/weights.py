@@ -76,10 +76,15 @@ def read_weights(run: str | Path, method: str, which: str = "best") -> Weights:
     matches = checksum_matches(source, data)
     if matches is False:
         raise EvalError(f"checkpoint {source} does not match its checksum: it changed after it was written")
-    if matches is None and (Path(run) / "finished.json").exists():
-        # a finished run's checkpoints were all written with their checksums, and `ship` copies them:
-        # one without is a file nobody can vouch for (an unfinished run's last.pt may lack one: a
-        # writer killed between the two files)
+    others = [p for p in (source.with_name("best.pt"), source.with_name("last.pt")) if p != source]
+    if (
+        matches is None
+        and (Path(run) / "finished.json").exists()
+        and any(checksum_path(p).exists() for p in others)
+    ):
+        # a finished run whose other checkpoint has its checksum wrote this one with its own too, and
+        # `ship` copies both: one without is a file nobody can vouch for. (An unfinished run's last.pt
+        # may lack one, a writer killed between the two files; a run from before checksums has none.)
         raise EvalError(
             f"checkpoint {source} has no checksum ({source.name}.sha256) although the run is finished: "
             "restore the checksum with the weights it was written with (from git, for zoo/)"
@@ -198,8 +203,9 @@ def selected_checkpoint(
             raise EvalError(f"--run {directory} kept no snapshot {which} (kept: {', '.join(kept) or 'none'})")
         if (directory / "finished.json").exists():  # a shipped run: it will never have one
             raise EvalError(
-                f"the run {directory} is finished and has no {path.name}: it was shipped without it "
-                f"(`kgnavbench ship RUN_DIR{' --last' if which == 'last' else ''}` from the run's own folder)"
+                f"the run {directory} is finished and has no {path.name}: it was shipped without it, or "
+                f"the file was removed (`kgnavbench ship RUN_DIR{' --last' if which == 'last' else ''}` "
+                "from the run's own folder ships it)"
             )
         when = "at the first validation" if which == "best" else "at the first checkpoint"
         raise EvalError(f"the run {directory} has no {path.name} yet (it is saved {when})")

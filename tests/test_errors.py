@@ -697,7 +697,16 @@ def test_a_command_run_inside_another_checkout_is_refused_naming_both(tmp_path, 
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and f"in the checkout {other}" in err, err
         assert f"{PACKAGE_CHECKOUT}'s" in err and "python -m kgnavbench" in err
+    assert main(["table", "--help"]) == 0  # help answers anywhere
+    capsys.readouterr()
     for where in (PACKAGE_CHECKOUT / "docs", tmp_path):
         monkeypatch.chdir(where)
         assert main(["methods"]) == 0
         capsys.readouterr()
+    # an installed package (pip install ., not editable) is no checkout: it runs inside any clone
+    import kgnavbench.cli as cli
+
+    monkeypatch.setattr(cli, "PACKAGE_CHECKOUT", tmp_path / "venv" / "lib" / "site-packages")
+    monkeypatch.chdir(other)
+    assert main(["methods"]) == 0
+    capsys.readouterr()
