@@ -550,68 +550,110 @@ def open_session(
 
 
 def after_update(s: Session, ranks: distributed.Ranks) -> None:
-    """After an update: the time estimate, a snapshot, and every log_every frames the metrics row,
-    validation (every val_every, and at the end; best.pt) and last.pt."""
-    trainer, run, options, progress = s.trainer, s.run, s.trainer.opts, s.progress
-    if not s.estimated and time.perf_counter() - s.t0 >= ESTIMATE_AFTER and not s.done:
-        s.estimated = True
-        rate = (trainer.frames - s.f0) / (time.perf_counter() - s.t0)
-        if rate > 0:
-            progress(
-                f"  {rate:,.0f} frames/s over the first {trainer.frames - s.f0:,} frames: about "
-                f"{duration_text((run.frames - trainer.frames) / rate)} to go at that rate (later "
-                "episodes are longer; the progress lines give the ETA as it goes)"
-            )
-    if s.next_keep is not None and trainer.frames >= s.next_keep and ranks.main:
-        keep = options.keep_every
-        s.next_keep = (trainer.frames // keep + 1) * keep
-        snapshots = run.directory / "snapshots"
-        snapshots.mkdir(exist_ok=True)
-        save_checkpoint(snapshots / f"frames-{trainer.frames}.pt", trainer.policy_state())
-    if trainer.frames < s.next_log and not s.done:
+    """After an update: the time estimate, a snapshot, and every log_every frames the ranks' numbers
+    summed, validation (every val_every, and at the end; best.pt), the metrics row, last.pt and the
+    progress line."""
+    announce_rate(s)
+    keep_snapshot(s, ranks)
+    if s.trainer.frames < s.next_log and not s.done:
         return
-    every = options.log_every
-    s.next_log = (trainer.frames // every + 1) * every
-    val_sr = val_spl = float("nan")
-    val_episodes = 0
-    trainer.stats = distributed.sum_numbers(trainer.stats, ranks)  # every rank's episodes and losses
+    s.next_log = (s.trainer.frames // s.trainer.opts.log_every + 1) * s.trainer.opts.log_every
+    ranks_state = reduce_ranks(s.trainer, ranks)
+    if not ranks.main:  # rank 0 alone validates and writes
+        return
+    validation = validate_and_select(s)
+    row = write_metrics_row(s, validation)
+    save_checkpoint(
+        s.run.directory / "last.pt",
+        {**s.trainer.state_dict(), **({"ranks": ranks_state} if ranks.world > 1 else {})},
+    )
+    report_progress(s, row)
+
+
+def announce_rate(s: Session) -> None:
+    """Once, ESTIMATE_AFTER seconds in: the rate so far and the time it gives to the end."""
+    trainer = s.trainer
+    if s.estimated or time.perf_counter() - s.t0 < ESTIMATE_AFTER or s.done:
+        return
+    s.estimated = True
+    rate = (trainer.frames - s.f0) / (time.perf_counter() - s.t0)
+    if rate > 0:
+        s.progress(
+            f"  {rate:,.0f} frames/s over the first {trainer.frames - s.f0:,} frames: about "
+            f"{duration_text((s.run.frames - trainer.frames) / rate)} to go at that rate (later "
+            "episodes are longer; the progress lines give the ETA as it goes)"
+        )
+
+
+def keep_snapshot(s: Session, ranks: distributed.Ranks) -> None:
+    """Every keep_every frames (rank 0): the weights as snapshots/frames-N.pt."""
+    trainer = s.trainer
+    if s.next_keep is None or trainer.frames < s.next_keep or not ranks.main:
+        return
+    keep = trainer.opts.keep_every
+    s.next_keep = (trainer.frames // keep + 1) * keep
+    snapshots = s.run.directory / "snapshots"
+    snapshots.mkdir(exist_ok=True)
+    save_checkpoint(snapshots / f"frames-{trainer.frames}.pt", trainer.policy_state())
+
+
+def reduce_ranks(trainer: Trainer, ranks: distributed.Ranks):
+    """Every rank's episode and loss numbers summed into rank 0's; the other ranks' counters start
+    afresh. -> every rank's state for last.pt (None with one rank)."""
+    trainer.stats = distributed.sum_numbers(trainer.stats, ranks)
     if ranks.world > 1:
         trainer.target_stats = distributed.sum_tensor(torch.from_numpy(trainer.target_stats), ranks).numpy()
     ranks_state = distributed.gather(trainer.rank_state(), ranks) if ranks.world > 1 else None
-    if not ranks.main:  # rank 0 alone validates and writes
+    if not ranks.main:
         trainer.stats = trainer._empty_stats()
         trainer.target_stats[:] = 0.0
-        return
-    if trainer.frames >= s.next_val or s.done:
-        s.next_val = (trainer.frames // options.val_every + 1) * options.val_every
-        tv = time.perf_counter()
-        val_sr, val_spl, val_frames, val_episodes = trainer.validate()
-        trainer.val_max = max(trainer.val_max, val_sr)
-        selected = val_sr >= trainer.best_val_sr  # the paper's rule: the best; ties to the later
-        progress(
-            f"  validation: SR {val_sr:.1f}% (standard error {standard_error(val_sr, val_episodes):.1f}, "
-            f"{val_episodes} episodes), SPL {val_spl:.1f}% ({val_frames:,} frames in "
-            f"{time.perf_counter() - tv:.1f} s){'; now best.pt' if selected else ''}"
+    return ranks_state
+
+
+def validate_and_select(s: Session) -> tuple[float, float, int]:
+    """Every val_every frames, and at the end: validation, and best.pt where its SR is the best so far
+    (the paper's rule; ties to the later). -> SR, SPL, episodes (NaN, NaN, 0 between validations)."""
+    trainer, options = s.trainer, s.trainer.opts
+    if trainer.frames < s.next_val and not s.done:
+        return float("nan"), float("nan"), 0
+    s.next_val = (trainer.frames // options.val_every + 1) * options.val_every
+    started = time.perf_counter()
+    val_sr, val_spl, val_frames, val_episodes = trainer.validate()
+    trainer.val_max = max(trainer.val_max, val_sr)
+    selected = val_sr >= trainer.best_val_sr
+    s.progress(
+        f"  validation: SR {val_sr:.1f}% (standard error {standard_error(val_sr, val_episodes):.1f}, "
+        f"{val_episodes} episodes), SPL {val_spl:.1f}% ({val_frames:,} frames in "
+        f"{time.perf_counter() - started:.1f} s){'; now best.pt' if selected else ''}"
+    )
+    if selected:
+        trainer.best_val_sr = val_sr
+        save_checkpoint(
+            s.run.directory / "best.pt", {**trainer.state_dict(), "val_sr": val_sr, "val_spl": val_spl}
         )
-        if selected:
-            trainer.best_val_sr = val_sr
-            save_checkpoint(
-                run.directory / "best.pt", {**trainer.state_dict(), "val_sr": val_sr, "val_spl": val_spl}
-            )
+    return val_sr, val_spl, val_episodes
+
+
+def write_metrics_row(s: Session, validation: tuple[float, float, int]) -> dict:
+    """The metrics row since the last one (appended to metrics.csv); the counters start afresh."""
+    trainer = s.trainer
+    val_sr, val_spl, val_episodes = validation
     seconds = time.perf_counter() - s.t0
     row = _metrics_row(trainer, s.seconds_before, seconds, trainer.frames - s.f0, val_sr, val_spl)
     row["val_episodes"] = val_episodes or ""
-    with open(run.directory / "metrics.csv", "a") as f:
+    with open(s.run.directory / "metrics.csv", "a") as f:
         csv.DictWriter(f, METRICS).writerow(row)
     trainer.stats = trainer._empty_stats()
     trainer.target_stats[:] = 0.0
-    save_checkpoint(
-        run.directory / "last.pt",
-        {**trainer.state_dict(), **({"ranks": ranks_state} if ranks.world > 1 else {})},
-    )
-    fps = (trainer.frames - s.f0) / max(seconds, 1e-9)
-    eta = f"  ETA {duration_text((run.frames - trainer.frames) / fps)}" if not s.done and fps > 0 else ""
-    progress(
+    return row
+
+
+def report_progress(s: Session, row: dict) -> None:
+    """The progress line of a metrics row, with the time to the end at the session's rate."""
+    trainer = s.trainer
+    fps = (trainer.frames - s.f0) / max(time.perf_counter() - s.t0, 1e-9)
+    eta = f"  ETA {duration_text((s.run.frames - trainer.frames) / fps)}" if not s.done and fps > 0 else ""
+    s.progress(
         f"{trainer.frames:>12,} frames  {row['frames_per_s']:>8} frames/s{eta}  "
         f"reward/frame {row['mean_reward']}  "
         f"SR(training episodes, mean over targets) {row['success_rate']}%  "
