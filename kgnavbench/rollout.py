@@ -108,6 +108,11 @@ class Actors:
         seed: int,
         reach: int | None,
     ):
+        """The agents of `kitchen` (one entry per agent: its training kitchen's index in `space`), each
+        keeping its target of `assigned` (None: a new target every episode), stepped by one
+        NavigationVectorEnv under the training options (episode cap, when a wrong Stop ends an
+        episode); `model` acts for them, sampling with `generator`; `seed` seeds their episodes;
+        `reach` is the start curriculum's farthest start now (None: none)."""
         self.space, self.opts, self.generator = space, options, generator
         self.ff = model.config.arch == "ff"
         self.envs = NavigationVectorEnv.over(

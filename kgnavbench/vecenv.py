@@ -458,6 +458,8 @@ class Navigation:
     def _setup(
         self, n, kitchens, targets, success_rule, stop_ends, max_steps, views, observation="dict"
     ) -> None:
+        """The constructors' shared set-up: the options checked, the state space built for these
+        kitchens and target set, n navigators spread over the kitchens in turn."""
         names = kitchens_of(kitchens)
         targets = default_targets(names) if targets is None else targets
         if targets not in TARGET_SETS:
@@ -479,6 +481,8 @@ class Navigation:
         self._use(navigators, max_steps, views, observation)
 
     def _use(self, navigators: Navigators, max_steps, views: bool, observation: str = "dict") -> None:
+        """Take `navigators` (and their state space) as this env's agents, with the episode cap and
+        what an observation holds."""
         max_steps = whole_number_in(max_steps, "max_steps", 1, MAX_EPISODE_STEPS, VecEnvError)
         if views and navigators.space.views is None:
             raise VecEnvError("views=True needs a state space built with its views (pixels=True)")
@@ -492,6 +496,7 @@ class Navigation:
         self._target_names = np.array(self.space.target_ids, dtype=object)
 
     def _curriculum(self, steps) -> None:
+        """Set the start curriculum's length in steps (0: none), checked."""
         if not _is_integer(steps) or steps < 0:
             raise VecEnvError(f"curriculum_steps must be a whole number of steps >= 0, not {steps!r}")
         self.curriculum_steps = int(steps)
@@ -501,6 +506,8 @@ class Navigation:
         return curriculum_reach(self.curriculum_done, self.curriculum_steps)
 
     def _gather(self, idx=slice(None)) -> dict | np.ndarray:
+        """The observations of the agents `idx`: view and target features and object vectors (and
+        views), as a dict of arrays or one float32 Box row each."""
         sp, nav = self.space, self.navigators
         state, goal = nav.state[idx], sp.destination[nav.target[idx]]
         if self.observation == "box":
@@ -518,6 +525,8 @@ class Navigation:
         return out
 
     def _episode_info(self, idx) -> dict:
+        """The ended episodes' numbers of the agents `idx`: success, lengths, shortest path,
+        collisions, return."""
         nav = self.navigators
         return {
             "success": nav.success[idx].copy(),
