@@ -101,7 +101,9 @@ class Trainer:
     `update` is the algorithm, in its two halves: `collect` (the agents act n steps under the current
     weights, without autograd) and one gradient step on the sum of the rollout's A2C loss
     (`rollout_losses`), IL's (`expert_batch_loss`, or DAgger's labels on the rollout's own states) and
-    TSE's (`relabelled_windows`, `skill_extension_loss`): the functions after the class."""
+    TSE's (`relabelled_windows`, `skill_extension_loss`), plain functions of kgnavbench/learning.py.
+    `learn` drives trainers (one per run, several for stacked seeds) to their frames; `after_update`
+    logs, validates and checkpoints after each update."""
 
     def __init__(
         self,
