@@ -154,15 +154,12 @@ def _run_configs(folder: Path, method: str, unreadable: list | None = None):
     for config_path in candidates:
         try:
             config = json.loads(config_path.read_text())
+            why = None if isinstance(config, dict) else f"a JSON {type(config).__name__}, not a run's config"
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            why = first_line(e)
+        if why is not None:  # not a run's config: nothing to match; named if the folder is a method's run
             if unreadable is not None and config_path.parent.name.startswith(f"{method}-"):
-                unreadable.append((config_path, first_line(e)))
-            continue  # not a run's config: nothing to match
-        if not isinstance(config, dict):
-            if unreadable is not None and config_path.parent.name.startswith(f"{method}-"):
-                unreadable.append(
-                    (config_path, f"it holds a JSON {type(config).__name__}, not a run's config")
-                )
+                unreadable.append((config_path, why))
             continue
         if config.get("method") == method:
             yield config_path.parent, config

@@ -10,9 +10,9 @@ import io
 from pathlib import Path
 
 import pytest
+from test_table import episode  # (pytest puts tests/ on the path)
 
 from kgnavbench.cli import main
-from kgnavbench.metrics import EpisodeResult
 from kgnavbench.table import ABLATION_CSV_FIELDS, write_table
 from kgnavbench.table_spec import SPEC_FILE, Preset, load_spec
 from kgnavbench.table_statistics import RowResult, TableResult, cell_episodes
@@ -21,23 +21,6 @@ ABLATION = "table1-ablation.csv"  # the quick preset's
 # the committed spec draws both comparisons of these rows: +KG against +IL+TSE, +KG+Attention against +KG
 ROWS = ("+IL+TSE", "+KG", "+KG+Attention")
 KG_BLOCK = '[[comparisons]]\nbase = "+KG"\nother = "+KG+Attention"\n'
-
-
-def episode(column: str, kind: str, target: str, success: bool, path: int = 10) -> EpisodeResult:
-    return EpisodeResult(
-        kitchen="FloorPlan30" if column == "unseen_kitchens" else "FloorPlan1",
-        target=target,
-        kind=kind,
-        column=column,
-        start=0,
-        max_steps=100,
-        success=success,
-        path_length=path,
-        shortest_path=10,
-        collisions=0,
-        last_view_shows_target=success,
-        episode_length=path + 1,
-    )
 
 
 def written_tables(folder: Path) -> Path:
@@ -52,7 +35,10 @@ def written_tables(folder: Path) -> Path:
                 episode("seen_seen", "static", t, i < wins + seed, path=10 + 5 * seed)
                 for i, t in enumerate("AABB")
             ]
-            + [episode("unseen_kitchens", "static", t, i < wins, path=20) for i, t in enumerate("CCD")]
+            + [
+                episode("unseen_kitchens", "static", t, i < wins, path=20, kitchen="FloorPlan30")
+                for i, t in enumerate("CCD")
+            ]
             for seed in range(2)
         ]
         return RowResult(rows[name], [cell_episodes(s) for s in seeds], ["r"] * 2, ["e"] * 2, 1)
