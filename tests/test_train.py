@@ -1288,6 +1288,24 @@ def test_the_profile_benchmark_times_the_packages_own_functions(tmp_path, floorp
     assert wrapped() == before
 
 
+def test_the_tse_relabels_benchmark_counts_through_the_packages_own_functions(tmp_path, floorplan1_tasks):
+    """benchmarks/tse_relabels.py wraps SubtargetSampler.finish and train.relabelled_windows in place
+    (no copy): a short +TSE run counts ended episodes, sampled windows and relabelled steps, and the
+    package is as it was afterwards."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("tse_relabels", ROOT / "benchmarks" / "tse_relabels.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    before = (losses.SubtargetSampler.finish, train.relabelled_windows)
+    options = {**TINY, "tse": "true", "episode_cap": "30"}
+    counts, frames = bench.count("lstm_a3c", options, 420, ("FloorPlan1",), tmp_path)
+    assert frames >= 420 and counts["updates"] > 0
+    assert counts["episodes ended"] > 0 and counts["windows sampled"] > 0 and counts["relabelled steps"] > 0
+    assert counts["windows offered"] == counts["windows sampled"]  # every window sampled is offered once
+    assert (losses.SubtargetSampler.finish, train.relabelled_windows) == before
+
+
 def _lstm_returning_bf16(monkeypatch):
     """Make the fused LSTM return bf16 under CPU autocast, as it does on a CPU with native bf16
     kernels (AVX512-BF16 or AMX) and on CUDA; on a CPU without them models.py runs it in fp32, so
