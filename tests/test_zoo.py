@@ -1,8 +1,9 @@
 """The committed zoo/ is whole: every shipped run loads with its checksum, its best.pt is the
 checkpoint Table I's rule picks from its own metrics.csv, zoo/README.md lists exactly the folders
-there, each job once, and the whole zoo stays under 130 MB (the paper preset's 27 runs with best.pt
-and last.pt took about 86 MB; its extra seeds where they decide the paper's comparisons, up to 12
-more runs of 2.2-4.3 MB each, need about 116 MB)."""
+there, each job once, and the whole zoo stays under 205 MB. The bound is what the shipped runs need:
+the paper preset's 35 runs took 110 MB; the paper-protocol preset's 27 learned runs take about
+2.4 MB each (best.pt and last.pt, as its first six shipped), its FF A3C about 5.5 MB and its graph
+rows about 4.5 MB as the paper preset's do: about 87 MB, 197 MB in all."""
 
 import csv
 import json
@@ -21,7 +22,7 @@ ZOO = Path(__file__).resolve().parents[1] / "zoo"
 SHIPPED = sorted(p for p in ZOO.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
-def test_the_zoos_readme_lists_what_its_folders_give_and_it_is_under_130_mb():
+def test_the_zoos_readme_lists_what_its_folders_give_and_it_is_under_205_mb():
     """zoo/README.md's listing is `jobs.zoo_listing` of the folders, as `ship` writes it: each run
     once, none missing, none extra, each with the row, frames and checkpoints its own files give."""
     text = (ZOO / "README.md").read_text()
@@ -32,7 +33,7 @@ def test_the_zoos_readme_lists_what_its_folders_give_and_it_is_under_130_mb():
     # each job once: a retrained run's superseded one is removed, so that the zoo is what tables use
     assert not [(run.name, other.name) for run in SHIPPED for other in same_job_runs(ZOO, run)]
     size = sum(f.stat().st_size for f in ZOO.rglob("*") if f.is_file())
-    assert size < 130e6, f"zoo/ is {size / 1e6:.1f} MB"
+    assert size < 205e6, f"zoo/ is {size / 1e6:.1f} MB"
 
 
 @pytest.mark.parametrize("run", SHIPPED, ids=[p.name for p in SHIPPED])
