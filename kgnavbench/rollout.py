@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -28,48 +29,31 @@ from .runs import TrainOptions
 from .vecenv import NavigationVectorEnv, StateSpace
 
 
+class PassInputs(NamedTuple):
+    """One acting forward pass's inputs: `Model.__call__`'s arguments less the graph."""
+
+    space: StateSpace
+    states: np.ndarray  # (B,) the agents' states
+    goals: np.ndarray  # (B,) their destinations' states
+    hidden: tuple | None  # the LSTM state (h, c) before this step; None at a run's start
+    scene: np.ndarray | None  # FF's training-kitchen index per agent
+    history: np.ndarray | None  # FF's frames
+
+
 @dataclass
-class Forward:
-    """A forward pass `Actors.steps` needs: `inputs` are `Model.__call__`'s arguments less the graph
-    (space, states, goals, hidden, scene, history). "step": every agent, at a step or for the bootstrap
-    value after the last; "cut": the agents a time limit cut, for gamma V of the state they reached."""
+class Cut:
+    """The agents a time limit cut at one step, and the forward pass that values the states they
+    reached (the return goes on past the cap: `Actors.add_cut_value`)."""
 
-    kind: str
-    inputs: tuple
-
-
-def answer(model: Model, request: Forward, graph):
-    """A `Forward` answered by one model: (logits, value, hidden, extras)."""
-    space, states, goals, hidden, scene, history = request.inputs
-    return model(space, states, goals, hidden, graph, scene, history)
+    agents: np.ndarray  # their rows
+    inputs: PassInputs
 
 
-def drive(steps: list, cut, step) -> list:
-    """`Actors.steps` generators run to their rollouts in lock-step, one forward pass at a time: each
-    "cut" request answered alone by `cut(i, request)`, then the "step" requests of all at once by
-    `step(requests)` (a list of answers). `Actors.collect` drives one; `stacking.collect` a row's
-    seeds, their step passes stacked. The generators take the same steps, so they end together."""
-    done: list = [None] * len(steps)
-
-    def send(i: int, reply) -> Forward | None:
-        try:
-            return steps[i].send(reply)
-        except StopIteration as end:
-            done[i] = end.value
-            return None
-
-    requests = [next(s) for s in steps]
-    while True:
-        for i in range(len(steps)):
-            while requests[i] is not None and requests[i].kind == "cut":
-                requests[i] = send(i, cut(i, requests[i]))
-        live = [r is not None for r in requests]
-        if not any(live):
-            return done
-        if not all(live):
-            raise RuntimeError("lock-stepped actors out of step")
-        for i, reply in enumerate(step(requests)):
-            requests[i] = send(i, reply)
+def answer(model: Model, inputs: PassInputs, graph):
+    """One acting forward pass of one model: (logits, value, hidden, extras)."""
+    return model(
+        inputs.space, inputs.states, inputs.goals, inputs.hidden, graph, inputs.scene, inputs.history
+    )
 
 
 @dataclass
@@ -114,6 +98,7 @@ class Actors:
         episode); `model` acts for them, sampling with `generator`; `seed` seeds their episodes;
         `reach` is the start curriculum's farthest start now (None: none)."""
         self.space, self.opts, self.generator = space, options, generator
+        self.device = model.device
         self.ff = model.config.arch == "ff"
         self.envs = NavigationVectorEnv.over(
             space,
@@ -143,106 +128,129 @@ class Actors:
         and the acting pass's logits and values. The rewards and ended episodes are added to `stats`
         (totals) and `per_target` (2, targets: episodes, successes per target row); the ended ones' TSE
         windows come with the rollout, and its agent's next episode (starting at most `reach` actions
-        from its destination) begins at the next step."""
-        steps = self.steps(model, reach, stats, per_target)
+        from its destination) begins at the next step. stacking.collect runs the same loop for a
+        row's seeds, with their forward passes stacked."""
+        act = partial(answer, model, graph=graph)
         with torch.no_grad():
-            alone = partial(answer, model, graph=graph)
-            [rollout] = drive([steps], lambda i, request: alone(request), lambda one: [alone(one[0])])
-        return rollout
+            rollout = self.start_rollout(model.device)
+            for t in range(self.opts.n_steps):
+                logits, value, hidden, _ = act(self.step_inputs())
+                cut = self.step(rollout, t, logits, value, hidden, reach, stats, per_target)
+                if cut is not None:
+                    self.add_cut_value(rollout, t, cut, act(cut.inputs)[1])
+            return self.end_rollout(rollout, act(self.step_inputs())[1])
 
-    def steps(self, model: Model, reach: int | None, stats: dict, per_target: np.ndarray):
-        """`collect` as a generator that yields each forward pass it needs (a `Forward`) and is sent
-        the model's answer, (logits, value, hidden, extras); it returns the Rollout. Several seeds'
-        actors step in lock-step through it, their forward passes stacked into one
-        (kgnavbench/stacking.py); `collect` answers each with the model itself."""
-        opts, nav, space = self.opts, self.nav, self.space
-        n, b = opts.n_steps, nav.n
-        states = np.zeros((n, b), np.int64)
-        targets = np.zeros((n, b), np.int64)
-        actions = np.zeros((n, b), np.int64)
-        reached = np.zeros((n, b), np.int64)
-        histories = np.zeros((n, b, self.history_length), np.int64) if self.ff else None
-        rewards = np.zeros((n, b), np.float32)
-        dones = np.zeros((n, b), np.float32)
-        truncations = np.zeros((n, b), bool)
-        logits_seen = torch.zeros(n, b, N_ACTIONS, device=model.device)
-        values_seen = torch.zeros(n, b, device=model.device)
-        windows = []
-        start_hidden = hidden = detached(self.hidden)
-        scene = nav.kitchen if self.ff else None
-        for t in range(n):
-            states[t], targets[t] = nav.state, nav.target
-            if self.ff:
-                histories[t] = self.history
-            goals = space.destination[nav.target]
-            before_hidden = hidden
-            logits, value, hidden, _ = yield Forward(
-                "step", (space, nav.state, goals, hidden, scene, self.history)
-            )
-            logits_seen[t], values_seen[t] = logits, value
-            probs = F.softmax(logits, -1)
-            action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
-            a = action.cpu().numpy()
-            actions[t] = a
-            before = nav.state.copy()
-            _, r, terminated, truncated, infos = self.envs.step(a)
-            reached[t] = nav.state
-            if opts.wrong_stop_penalty:
-                r = r - opts.wrong_stop_penalty * ((a == STOP) & ~nav.success)
-            done = terminated | truncated
-            stats["reward"] += float(r.sum())
-            rewards[t], dones[t] = r, done
-            cut = np.flatnonzero(truncated & ~terminated)
-            if len(cut):
-                # a time limit is no end of the task: the return goes on past the cap, so the
-                # last step's reward gains gamma V(the state it reached), as Stable-Baselines3 does
-                # (the episode still ends here: nothing after it belongs to it)
-                truncations[t, cut] = True
-                history = None
-                if self.ff:
-                    history = np.concatenate([self.history[cut, 1:], nav.state[cut, None]], 1)
-                _, after, _, _ = yield Forward(
-                    "cut",
-                    (
-                        space,
-                        nav.state[cut],
-                        space.destination[nav.target[cut]],
-                        rows_of(hidden, cut),
-                        None if scene is None else scene[cut],
-                        history,
-                    ),
-                )
-                rewards[t, cut] += opts.gamma * after.cpu().numpy()
-            if opts.tse:
-                candidate = (a != STOP) & (space.objects[nav.state] & self.subtarget_types[nav.target]).any(1)
-                taken = probs.gather(1, action[:, None]).squeeze(1).cpu().numpy()
-                lstm_state = None
-                if before_hidden is not None:
-                    lstm_state = torch.stack(before_hidden, 1).float().cpu().numpy()
-                self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng, lstm_state)
-            self.tick += 1
-            finished = np.flatnonzero(done)
-            if len(finished):
-                ended = infos["final_info"]
-                stats["episodes"] += len(finished)
-                stats["successes"] += int(ended["success"][finished].sum())
-                np.add.at(per_target[0], nav.target[finished], 1.0)
-                np.add.at(per_target[1], nav.target[finished], ended["success"][finished])
-                stats["returns"] += float(ended["episode_return"][finished].sum())
-                if opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
-                    windows += self.tse.finish(finished, self.tick)
-                self.envs.reset(options={"reset_mask": done, "reach": reach})
-            hidden = keep_rows(hidden, model.tensor(~done).float())
-            if self.ff:
-                self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
-                self.history[finished] = nav.state[finished, None]
-        goals = space.destination[nav.target]
-        _, bootstrap, _, _ = yield Forward("step", (space, nav.state, goals, hidden, scene, self.history))
-        self.hidden = hidden
+    def start_rollout(self, device: torch.device) -> Rollout:
+        """An empty rollout of n steps, from the agents' LSTM state now."""
+        n, b = self.opts.n_steps, self.nav.n
+        self.hidden = detached(self.hidden)
+        steps = partial(np.zeros, (n, b))
         return Rollout(
-            states, targets, actions, reached, rewards, dones, truncations, histories, scene, start_hidden,
-            bootstrap, logits_seen, values_seen, windows,
-        )  # fmt: skip
+            states=steps(np.int64),
+            targets=steps(np.int64),
+            actions=steps(np.int64),
+            reached=steps(np.int64),
+            rewards=steps(np.float32),
+            dones=steps(np.float32),
+            truncated=steps(bool),
+            histories=np.zeros((n, b, self.history_length), np.int64) if self.ff else None,
+            scene=self.nav.kitchen if self.ff else None,
+            start_hidden=self.hidden,
+            bootstrap=torch.zeros(b, device=device),  # end_rollout's
+            logits=torch.zeros(n, b, N_ACTIONS, device=device),
+            values=torch.zeros(n, b, device=device),
+            windows=[],
+        )
+
+    def step_inputs(self) -> PassInputs:
+        """The forward pass every agent needs now: at a step, or for the bootstrap value after the last."""
+        nav = self.nav
+        scene = nav.kitchen if self.ff else None
+        return PassInputs(
+            self.space, nav.state, self.space.destination[nav.target], self.hidden, scene, self.history
+        )
+
+    def step(
+        self, rollout: Rollout, t: int, logits, value, hidden, reach, stats: dict, per_target
+    ) -> Cut | None:
+        """Step t of the rollout, given the acting pass's answer for it (`step_inputs`): sample the
+        actions, step the agents, score them, feed the TSE, end and restart the finished episodes
+        and carry the LSTM state on. Returns the agents a time limit cut (None: none), whose rewards
+        still lack gamma V of the states they reached."""
+        opts, nav, space = self.opts, self.nav, self.space
+        rollout.states[t], rollout.targets[t] = nav.state, nav.target
+        if self.ff:
+            rollout.histories[t] = self.history
+        before_hidden = self.hidden
+        rollout.logits[t], rollout.values[t] = logits, value
+        probs = F.softmax(logits, -1)
+        action = torch.multinomial(probs, 1, generator=self.generator).squeeze(1)
+        a = action.cpu().numpy()
+        rollout.actions[t] = a
+        before = nav.state.copy()
+        _, r, terminated, truncated, infos = self.envs.step(a)
+        rollout.reached[t] = nav.state
+        if opts.wrong_stop_penalty:
+            r = r - opts.wrong_stop_penalty * ((a == STOP) & ~nav.success)
+        done = terminated | truncated
+        stats["reward"] += float(r.sum())
+        rollout.rewards[t], rollout.dones[t] = r, done
+        cut = None
+        agents = np.flatnonzero(truncated & ~terminated)
+        if len(agents):
+            # a time limit is no end of the task: the return goes on past the cap, so the last
+            # step's reward gains gamma V(the state it reached), as Stable-Baselines3 does (the
+            # episode still ends here: nothing after it belongs to it). The inputs are taken now,
+            # before the episode restarts.
+            rollout.truncated[t, agents] = True
+            history = None
+            if self.ff:
+                history = np.concatenate([self.history[agents, 1:], nav.state[agents, None]], 1)
+            scene = rollout.scene
+            cut = Cut(
+                agents,
+                PassInputs(
+                    space,
+                    nav.state[agents],
+                    space.destination[nav.target[agents]],
+                    rows_of(hidden, agents),
+                    None if scene is None else scene[agents],
+                    history,
+                ),
+            )
+        if opts.tse:
+            candidate = (a != STOP) & (space.objects[nav.state] & self.subtarget_types[nav.target]).any(1)
+            taken = probs.gather(1, action[:, None]).squeeze(1).cpu().numpy()
+            lstm_state = None
+            if before_hidden is not None:
+                lstm_state = torch.stack(before_hidden, 1).float().cpu().numpy()
+            self.tse.step(self.tick, before, a, taken, nav.state, candidate, self.rng, lstm_state)
+        self.tick += 1
+        finished = np.flatnonzero(done)
+        if len(finished):
+            ended = infos["final_info"]
+            stats["episodes"] += len(finished)
+            stats["successes"] += int(ended["success"][finished].sum())
+            np.add.at(per_target[0], nav.target[finished], 1.0)
+            np.add.at(per_target[1], nav.target[finished], ended["success"][finished])
+            stats["returns"] += float(ended["episode_return"][finished].sum())
+            if opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
+                rollout.windows += self.tse.finish(finished, self.tick)
+            self.envs.reset(options={"reset_mask": done, "reach": reach})
+        self.hidden = keep_rows(hidden, torch.from_numpy(~done).to(self.device).float())
+        if self.ff:
+            self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
+            self.history[finished] = nav.state[finished, None]
+        return cut
+
+    def add_cut_value(self, rollout: Rollout, t: int, cut: Cut, value: torch.Tensor) -> None:
+        """The cut agents' step-t rewards gain gamma V(the state each reached)."""
+        rollout.rewards[t, cut.agents] += self.opts.gamma * value.cpu().numpy()
+
+    def end_rollout(self, rollout: Rollout, bootstrap: torch.Tensor) -> Rollout:
+        """The rollout, with V of the state after its last step."""
+        rollout.bootstrap = bootstrap
+        return rollout
 
     # -- checkpoints: what differs between the ranks, with the trainer's generators --------------------
     def state_dict(self) -> dict:

@@ -9,7 +9,7 @@ generators, agents, validation, checkpoints and run directory: kgnavbench/train.
 weights are `torch.stack` of the seeds' own parameters, made once per pass, so the backward pass
 hands each seed's gradient to its own module.
 
-What is stacked: the acting forward passes (the seeds' `Actors.steps` in lock-step, `collect`) and the
+What is stacked: the acting forward passes (`collect`: the seeds' agents in lock-step, `Actors.step`) and the
 learning pass over the rollouts (`unroll`), the network's parts the profile names (acting forward,
 update forward, backward: 80-85% of a run). What is not: the knowledge graph's GCN (once per update
 per seed, `Model.graph`), IL's and TSE's sequence passes (each seed's own, packed to different
@@ -32,7 +32,7 @@ from torch import Tensor
 
 from .agent import Model
 from .models import GraphTerms, ModelConfig, ModelError, masked_softmax
-from .rollout import Forward, Rollout, answer, drive
+from .rollout import PassInputs, Rollout, answer
 
 Weights = dict[str, Tensor]
 
@@ -206,9 +206,9 @@ def state_of(models: list[Model], hidden: list, rows: int) -> tuple[Tensor, Tens
     return torch.stack([h for h, _ in states]), torch.stack([c for _, c in states])
 
 
-def forward(models: list[Model], w: Weights, readout, requests: list[Forward]) -> list[tuple]:
-    """The seeds' "step" forward passes as one: each seed's answer (logits, value, hidden, extras)."""
-    spaces, states, goals, hidden = ([r.inputs[i] for r in requests] for i in range(4))
+def forward(models: list[Model], w: Weights, readout, inputs: list[PassInputs]) -> list[tuple]:
+    """The seeds' acting forward passes as one: each seed's answer (logits, value, hidden, extras)."""
+    spaces, states, goals, hidden = ([x[i] for x in inputs] for i in range(4))
     config = models[0].config
     joint = encode(config, w, readout, *stacked_inputs(models, spaces, states, goals))
     h, c = lstm_cell(w, lstm_input(w, joint), state_of(models, hidden, joint.shape[1]))
@@ -219,16 +219,23 @@ def forward(models: list[Model], w: Weights, readout, requests: list[Forward]) -
 def collect(
     actors: list, models: list[Model], graphs: list, w: Weights, readout, acting: list
 ) -> list[Rollout]:
-    """The seeds' rollouts, their agents stepping in lock-step (`Actors.steps`): every step's forward
-    pass stacked; the agents a time limit cut answered by their own seed's model (a few per rollout).
-    `acting`: each seed's (reach, stats, per_target), as `Actors.collect` takes them."""
-    steps = [a.steps(m, *args) for a, m, args in zip(actors, models, acting)]
-
-    def alone(i: int, request: Forward):  # a time limit's cut: its own seed's model
-        return answer(models[i], request, graphs[i])
-
+    """The seeds' rollouts, their agents stepping in lock-step: `Actors.collect`'s loop with every
+    step's forward pass stacked; the agents a time limit cut are answered by their own seed's model
+    (a few per rollout). `acting`: each seed's (reach, stats, per_target), as `Actors.collect` takes them."""
+    stacked = partial(forward, models, w, readout)
     with torch.no_grad():
-        return drive(steps, alone, partial(forward, models, w, readout))
+        rollouts = [a.start_rollout(m.device) for a, m in zip(actors, models)]
+        for t in range(actors[0].opts.n_steps):
+            answers = stacked([a.step_inputs() for a in actors])
+            for actor, model, graph, rollout, answered, args in zip(
+                actors, models, graphs, rollouts, answers, acting
+            ):
+                logits, value, hidden, _ = answered
+                cut = actor.step(rollout, t, logits, value, hidden, *args)
+                if cut is not None:
+                    actor.add_cut_value(rollout, t, cut, answer(model, cut.inputs, graph)[1])
+        bootstraps = stacked([a.step_inputs() for a in actors])
+        return [a.end_rollout(r, b[1]) for a, r, b in zip(actors, rollouts, bootstraps)]
 
 
 def unroll(models: list[Model], spaces, rollouts: list[Rollout], w: Weights, readout) -> list[tuple]:

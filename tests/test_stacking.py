@@ -1,5 +1,7 @@
 """Stage 17 — stacking: a row's seeds in one process. Each stacked seed's first update is its
-single-seed first update (to float rounding) for every network stacking takes; a killed stacked job
+single-seed first update (to float rounding) for every network stacking takes; a stacked job's
+400-frame training writes recorded weights (the rollouts' lock-step pinned, every update, with cuts
+at the cap and TSE); a killed stacked job
 resumes every seed to the weights of an unbroken one; a single seed's run keeps today's name; what
 cannot stack is refused in one line."""
 
@@ -15,9 +17,16 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_train import TINY, tiny_options, tiny_run  # (pytest puts tests/ on the path)
+from test_train import (  # (pytest puts tests/ on the path)
+    TINY,
+    _sampled_weights_differ,
+    _train_weight_runs,
+    record_samples,
+    tiny_options,
+    tiny_run,
+)
 
-from kgnavbench import models, runs, train, zoo
+from kgnavbench import files, models, runs, train, zoo
 from kgnavbench.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -243,3 +252,51 @@ def test_a_stacked_jobs_lines_each_say_their_seed_and_a_single_seeds_are_as_befo
     assert main([*argv, "--seed", "1", "--runs", str(tmp_path / "alone")]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("training lstm_a3c") and not any(line.startswith("seed ") for line in lines)
+
+
+# A stacked job's arithmetic, pinned as test_train.py pins single runs' (the same two checks): +IL+TSE
+# with 30-action episodes, so that the rollouts cut agents at the cap and relabel TSE windows, seeds 0
+# and 1 in one process, 400 frames. Byte for byte where this machine has a recording (to add one:
+# `python tests/test_stacking.py --record-weights` prints its entry), else sampled weights to
+# test_train.WEIGHT_TOLERANCE of tests/recorded_stacked_weight_samples.json (the AVX-512 EPYC's).
+STACKED_RUN = (("lstm_a3c", ("il=true", "tse=true", "episode_cap=30", "wrong_stop_penalty=0.05")),)
+STACKED_SEEDS = ("--seeds", "0,1")
+STACKED_NAMES = ["seed 0 of lstm_a3c il tse episode_cap=30, stacked", "seed 1, stacked"]
+STACKED_SAMPLES_FILE = Path(__file__).with_name("recorded_stacked_weight_samples.json")
+RECORDED_STACKED_WEIGHTS = {
+    "AMD EPYC | avx avx2 fma f16c avx512f avx512dq avx512bw avx512vl avx512_vnni avx512_bf16"
+    " | torch 2.13.0": (
+        "80ff8313a9fe2c25f598abc3757f76624c5359441e89e2ede096e5dee24a5e4f",
+        "7162808b0808587627453a329e537d4fecff2012d65324d7fb72833a9cf1a939",
+    ),
+}
+
+
+def test_a_stacked_job_writes_the_recorded_weights(tmp_path, hermetic_cache):
+    if torch.__version__.split("+")[0] != "2.13.0":
+        pytest.skip("the recorded weights are torch 2.13.0's")
+    if "avx2" not in (files.machine()["vector_flags"] or ()):
+        pytest.skip("the recorded weights pin AVX2's vector paths, which this CPU does not have")
+    got = _train_weight_runs(tmp_path, hermetic_cache, runs=STACKED_RUN, argv=STACKED_SEEDS)
+    key = files.machine_key(files.machine())
+    if key in RECORDED_STACKED_WEIGHTS:
+        assert tuple(r["sha256"] for r in got) == RECORDED_STACKED_WEIGHTS[key], (
+            f"the bytes recorded on {key}"
+        )
+    else:
+        print(f"no byte recording for {key}: the tolerance check alone")
+        assert not _sampled_weights_differ(got, STACKED_NAMES, STACKED_SAMPLES_FILE)
+
+
+if __name__ == "__main__":  # python tests/test_stacking.py --record-weights [--samples]
+    import tempfile
+
+    if sys.argv[1:2] != ["--record-weights"]:
+        sys.exit("usage: python tests/test_stacking.py --record-weights [--samples]")
+    with tempfile.TemporaryDirectory() as folder:
+        cache = Path(os.environ.get("KGNAVBENCH_CACHE") or Path.home() / ".cache" / "kgnavbench")
+        recorded = _train_weight_runs(Path(folder), cache, runs=STACKED_RUN, argv=STACKED_SEEDS)
+    print(f'    "{files.machine_key(files.machine())}": (')
+    print("".join(f'        "{r["sha256"]}",\n' for r in recorded) + "    ),")
+    if "--samples" in sys.argv:
+        record_samples(recorded, STACKED_NAMES, STACKED_SAMPLES_FILE)

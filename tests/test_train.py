@@ -1175,31 +1175,38 @@ out = {}
 for i, (method, argv) in enumerate(json.loads(sys.argv[1])):
     runs = Path(sys.argv[2]) / str(i)
     assert main(["train", "--method", method, "--runs", str(runs), *argv]) == 0
-    (run,) = (runs / "train").iterdir()
-    model = load_checkpoint(run / "last.pt")["model"]
-    digest = hashlib.sha256()
-    for key in sorted(model):
-        digest.update(key.encode() + model[key].contiguous().view(torch.uint8).numpy().tobytes())
-    flat = torch.cat([model[key].float().flatten() for key in sorted(model)])
-    n = int(sys.argv[3])
-    rows = torch.randperm(len(flat), generator=torch.Generator().manual_seed(0))[:n].sort().values
-    sample = base64.b64encode(flat[rows].numpy().astype("<f4").tobytes()).decode()
-    out[i] = {"sha256": digest.hexdigest(), "weights": len(flat), "sample": sample}
+    out[i] = []
+    # a stacked job writes one run per seed: in the seeds' order
+    seed = lambda run: json.loads((run / "config.json").read_text())["seed"]
+    trained = sorted((runs / "train").iterdir(), key=seed)
+    for run in trained:
+        model = load_checkpoint(run / "last.pt")["model"]
+        digest = hashlib.sha256()
+        for key in sorted(model):
+            digest.update(key.encode() + model[key].contiguous().view(torch.uint8).numpy().tobytes())
+        flat = torch.cat([model[key].float().flatten() for key in sorted(model)])
+        n = int(sys.argv[3])
+        rows = torch.randperm(len(flat), generator=torch.Generator().manual_seed(0))[:n].sort().values
+        sample = base64.b64encode(flat[rows].numpy().astype("<f4").tobytes()).decode()
+        out[i].append({"sha256": digest.hexdigest(), "weights": len(flat), "sample": sample})
 print(json.dumps(out))
 """
 
 
-def _train_weight_runs(tmp_path: Path, cache: Path, extra: tuple[str, ...] = ()) -> list[dict]:
-    """WEIGHT_RUNS trained in a fresh process under the pinned numerics (with `extra` options added):
-    each run's sha256, weight count and sampled weights."""
+def _train_weight_runs(
+    tmp_path: Path, cache: Path, extra: tuple[str, ...] = (), runs=WEIGHT_RUNS, argv: tuple[str, ...] = ()
+) -> list[dict]:
+    """`runs` (WEIGHT_RUNS' shape) trained in a fresh process under the pinned numerics, with `extra`
+    options and `argv` (e.g. `--seeds 0,1`) added: each run's sha256, weight count and sampled weights,
+    in the jobs' order and, within a stacked job, the seeds' order."""
     jobs = [
         (
             method,
-            ["--frames", "400", "--kitchens", "FloorPlan1"]
+            ["--frames", "400", "--kitchens", "FloorPlan1", *argv]
             + [f"--set={k}={v}" for k, v in TINY.items()]
             + [f"--set={s}" for s in (*options, *extra)],
         )
-        for method, options in WEIGHT_RUNS
+        for method, options in runs
     ]
     env = {**os.environ, **PINNED_NUMERICS, "KGNAVBENCH_CACHE": str(cache)}
     done = subprocess.run(
@@ -1211,28 +1218,49 @@ def _train_weight_runs(tmp_path: Path, cache: Path, extra: tuple[str, ...] = ())
     )
     assert done.returncode == 0, done.stderr[-3000:]
     got = json.loads(done.stdout.strip().splitlines()[-1])
-    return [got[str(i)] for i in range(len(jobs))]
+    return [run for i in range(len(jobs)) for run in got[str(i)]]
 
 
-def _sampled_weights_differ(got: list[dict]) -> list[str]:
-    """Check 2: the runs whose sampled weights differ from the recorded ones beyond the tolerance, each
-    named with its largest difference (empty: all agree)."""
+def _sampled_weights_differ(
+    got: list[dict], names: list[str] | None = None, file: Path = SAMPLES_FILE
+) -> list[str]:
+    """Check 2: the runs whose sampled weights differ from those recorded in `file` beyond the
+    tolerance, each named with its largest difference (empty: all agree). `names`: the runs' names,
+    in `got`'s order (default WEIGHT_RUNS')."""
     import base64
 
-    recorded = json.loads(SAMPLES_FILE.read_text())
-    assert recorded["runs"] == [[m, list(o)] for m, o in WEIGHT_RUNS] and recorded["count"] == SAMPLED_WEIGHTS
+    recorded = json.loads(file.read_text())
+    names = names or [f"{m} {' '.join(o)}" for m, o in WEIGHT_RUNS]
+    assert recorded["runs"] == _recorded_run_list(names) and recorded["count"] == SAMPLED_WEIGHTS
     differ = []
-    for (method, options), run, count, want in zip(
-        WEIGHT_RUNS, got, recorded["weights"], recorded["samples"]
-    ):
+    for name, run, count, want in zip(names, got, recorded["weights"], recorded["samples"], strict=True):
         a = np.frombuffer(base64.b64decode(run["sample"]), "<f4")
         b = np.frombuffer(base64.b64decode(want), "<f4")
         gap = float(np.abs(a.astype(np.float64) - b).max())
         if run["weights"] != count:
-            differ.append(f"{method} {' '.join(options)}: {run['weights']} weights, not the recorded {count}")
+            differ.append(f"{name}: {run['weights']} weights, not the recorded {count}")
         elif gap > WEIGHT_TOLERANCE:
-            differ.append(f"{method} {' '.join(options)}: a sampled weight differs by {gap:.2e}")
+            differ.append(f"{name}: a sampled weight differs by {gap:.2e}")
     return differ
+
+
+def _recorded_run_list(names: list[str]) -> list:
+    """How a samples file lists its runs: WEIGHT_RUNS' [method, options] pairs, or the names given."""
+    default = [f"{m} {' '.join(o)}" for m, o in WEIGHT_RUNS]
+    return [[m, list(o)] for m, o in WEIGHT_RUNS] if names == default else names
+
+
+def record_samples(recorded: list[dict], names: list[str], file: Path) -> None:
+    """Write check 2's reference for these runs (only when the training changes on purpose)."""
+    samples = {
+        "runs": _recorded_run_list(names),
+        "count": SAMPLED_WEIGHTS,
+        "recorded_on": files.machine_key(files.machine()),
+        "weights": [r["weights"] for r in recorded],
+        "samples": [r["sample"] for r in recorded],
+    }
+    file.write_text(json.dumps(samples, indent=1) + "\n")
+    print(f"wrote {file}")
 
 
 def test_a_short_training_writes_the_recorded_weights(tmp_path, hermetic_cache):
@@ -1385,12 +1413,4 @@ if __name__ == "__main__":  # python tests/test_train.py --record-weights [--sam
     print(f'    "{files.machine_key(files.machine())}": (')
     print("".join(f'        "{r["sha256"]}",\n' for r in recorded) + "    ),")
     if "--samples" in sys.argv:  # only when the training changes on purpose: check 2's reference
-        samples = {
-            "runs": [[m, list(o)] for m, o in WEIGHT_RUNS],
-            "count": SAMPLED_WEIGHTS,
-            "recorded_on": files.machine_key(files.machine()),
-            "weights": [r["weights"] for r in recorded],
-            "samples": [r["sample"] for r in recorded],
-        }
-        SAMPLES_FILE.write_text(json.dumps(samples, indent=1) + "\n")
-        print(f"wrote {SAMPLES_FILE}")
+        record_samples(recorded, [f"{m} {' '.join(o)}" for m, o in WEIGHT_RUNS], SAMPLES_FILE)
