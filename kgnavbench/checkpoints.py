@@ -1,4 +1,4 @@
-"""Stage 33 — checkpoints: every kept snapshot of a table's runs, evaluated, as one CSV and a figure.
+"""Stage 36 — checkpoints: every kept snapshot of a table's runs, evaluated, as one CSV and a figure.
 
 A run of the paper presets keeps its weights every 2.5M frames (`keep_every`: RUN/snapshots/
 frames-N.pt) and measures its validation SR at each of them (metrics.csv). This stage evaluates every

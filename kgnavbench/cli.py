@@ -383,7 +383,9 @@ def cmd_encoder(args: argparse.Namespace) -> int:
 def cmd_table(args: argparse.Namespace) -> int:
     # torch and the trainer load only for the commands that need them
     from .jobs import Sources, job_commands, only_rows, preset_rows, run_job
-    from .table import run_table, to_markdown, to_paired_markdown, write_paired, write_table
+    from .table import run_table
+    from .table_files import to_markdown, write_table
+    from .table_paired import to_paired_markdown, write_paired
     from .table_spec import SPEC_FILE, load_spec
     from .table_statistics import check_same_runs, paired_differences
 
@@ -393,7 +395,7 @@ def cmd_table(args: argparse.Namespace) -> int:
     spec = load_spec(args.spec or SPEC_FILE)
     spec.preset(args.preset)  # an unknown preset is refused before anything runs
     if args.verdicts_only:
-        from .table import reverdict_tables
+        from .reverdict import reverdict_tables
 
         arguments.writable_folder(args.out or spec.path.parent, "--out")
         print(reverdict_tables(spec, args.preset, args.out or spec.path.parent).summary())

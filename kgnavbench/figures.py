@@ -1,4 +1,4 @@
-"""Stage 32 — figures: the paper's figures from Table I's runs, as PNG drawn with OpenCV
+"""Stage 35 — figures: the paper's figures from Table I's runs, as PNG drawn with OpenCV
 (kgnavbench/plots.py).
 
 `tsne` is exact t-SNE in torch; `attention_figure` shows what an attention vector weighs. `figures` draws

@@ -1,4 +1,4 @@
-"""Stage 31 — record: rerun-sdk recordings of episodes and training runs, and the viewer.
+"""Stage 34 — record: rerun-sdk recordings of episodes and training runs, and the viewer.
 
 Episodes (`record_episodes`, a .rrd file), on two timelines: `step` counts actions over the whole
 recording (so scrubbing plays the episodes one after another) and `episode` numbers the episode

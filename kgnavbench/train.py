@@ -113,6 +113,14 @@ class Trainer:
         rl: bool,
         ranks: distributed.Ranks = distributed.SINGLE,
     ):
+        """A trainer at frame 0 (`learn` loads a checkpoint into it to resume).
+
+        :param run: the run directory and what names it (method, kitchens, frames, seed, device)
+        :param options: the training options (`runs.TrainOptions`, resolved)
+        :param model_config: the plugin's network; its scene count is set to the run's kitchens
+        :param rl: whether the method learns from reward (False: IL alone, `imitation`)
+        :param ranks: this process's rank among torchrun's (default: a single process)
+        """
         self.run, self.opts, self.rl, self.ranks = run, options, rl, ranks
         self.kitchens = list(run.kitchens)
         self.model_config = dataclasses.replace(model_config, n_scenes=len(self.kitchens))
@@ -120,18 +128,9 @@ class Trainer:
         self.space = build_space(
             self.kitchens, "seen", options.success_rule, self.model_config.pixels, options.tse_unseen_targets
         )
-        # seeded after build_space: encoding features on a cache miss draws from torch's generator
-        torch.manual_seed(run.seed)
-        net = models.make_model(self.model_config)
-        if net.encoder is not None:  # end to end: start from the committed encoder and its statistics
-            net.encoder.load_state_dict(encoder.load_encoder().state_dict())
-            stats = encoder.encoder_feature_stats()
-            net.feature_mean.copy_(stats["mean"])
-            net.feature_std.copy_(stats["std"])
         self.device = torch.device(run.device)
-        net.to(self.device)
-        self.model = Model(net, self.model_config, models.CoVisibility(), options.bf16, self.device)
-        self.optimizer = torch.optim.Adam(net.parameters(), lr=options.lr)
+        self.model = self._build_model()
+        self.optimizer = torch.optim.Adam(self.model.net.parameters(), lr=options.lr)
         # every rank starts from the same weights (above); its agents draw from generators of their own
         # (rank 0's are a single process's)
         seed = run.seed if ranks.rank == 0 else run.seed + 1_000_003 * ranks.rank
@@ -148,6 +147,28 @@ class Trainer:
         self.target_stats = np.zeros((2, len(self.space.target_ids)), np.float64)
         self.val_space: StateSpace | None = None
         self.total_agents = options.agents_per_kitchen * len(self.kitchens)
+        self.actors, assigned = self._build_actors(seed)
+        self.il = options.il or not rl
+        self.dagger = self.il and options.il_expert == "dagger"
+        self.experts = self._expert_sequences(assigned) if self.il and not self.dagger else None
+
+    def _build_model(self) -> Model:
+        """The network at its initial weights (seeded by the run's seed), on the run's device."""
+        # seeded after build_space: encoding features on a cache miss draws from torch's generator
+        torch.manual_seed(self.run.seed)
+        net = models.make_model(self.model_config)
+        if net.encoder is not None:  # end to end: start from the committed encoder and its statistics
+            net.encoder.load_state_dict(encoder.load_encoder().state_dict())
+            stats = encoder.encoder_feature_stats()
+            net.feature_mean.copy_(stats["mean"])
+            net.feature_std.copy_(stats["std"])
+        net.to(self.device)
+        return Model(net, self.model_config, models.CoVisibility(), self.opts.bf16, self.device)
+
+    def _build_actors(self, seed: int) -> tuple[Actors, np.ndarray | None]:
+        """This rank's share of the training agents (`agents_per_kitchen` in every kitchen), and every
+        agent's assigned target row (None: a new target every episode)."""
+        options, ranks = self.opts, self.ranks
         kitchen = np.repeat(np.arange(len(self.kitchens)), options.agents_per_kitchen)
         assigned = None
         if options.fixed_targets:
@@ -155,7 +176,7 @@ class Trainer:
         mine = np.arange(self.total_agents)[ranks.rank :: ranks.world]  # this rank's share of the agents
         if not len(mine):
             raise TrainError(f"{self.total_agents} agents cannot be shared by {ranks.world} ranks")
-        self.actors = Actors(
+        actors = Actors(
             self.space,
             kitchen[mine],
             None if assigned is None else assigned[mine],
@@ -165,19 +186,20 @@ class Trainer:
             seed,
             self.reach(),
         )
-        self.il = options.il or not rl
-        self.dagger = self.il and options.il_expert == "dagger"
-        self.experts = (
-            expert_sequences(
-                self.space, options.il_expert, options.il_walk, np.random.default_rng([run.seed, 1])
-            )
-            if self.il and not self.dagger
-            else None
-        )
-        if self.experts is not None and options.targets_per_kitchen:  # only the trained targets' experts
+        return actors, assigned
+
+    def _expert_sequences(self, assigned: np.ndarray | None) -> Sequences:
+        """IL's expert sequences (`il_expert`), drawn from their own generator; only the trained
+        targets' where each kitchen trains a few (`targets_per_kitchen`)."""
+        options = self.opts
+        rng = np.random.default_rng([self.run.seed, 1])
+        experts = expert_sequences(self.space, options.il_expert, options.il_walk, rng)
+        if options.targets_per_kitchen:
             kept = np.unique(assigned)
-            ex = self.experts
-            self.experts = Sequences(ex.states[kept], ex.actions[kept], ex.mask[kept], ex.goal[kept])
+            experts = Sequences(
+                experts.states[kept], experts.actions[kept], experts.mask[kept], experts.goal[kept]
+            )
+        return experts
 
     @staticmethod
     def _empty_stats() -> dict:

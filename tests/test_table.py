@@ -21,7 +21,7 @@ from kgnavbench import runs
 from kgnavbench.cli import build_parser, main
 from kgnavbench.jobs import table_jobs, time_left
 from kgnavbench.metrics import EpisodeResult
-from kgnavbench.table import caption, to_ablation_csv, to_csv, to_latex, to_markdown, write_table
+from kgnavbench.table_files import caption, to_ablation_csv, to_csv, to_latex, to_markdown, write_table
 from kgnavbench.table_spec import (
     CELL_KEYS,
     CELLS,
@@ -445,7 +445,7 @@ def test_a_caption_and_a_paired_intro_name_the_rule_the_episodes_were_scored_und
 ):
     """The caption, and the paired tables' intro, name the spec's success rule (or the preset's score
     rule) as evaluate.SUCCESS_RULE_TEXT words it: never another rule's words."""
-    from kgnavbench.table import paired_intro
+    from kgnavbench.table_paired import paired_intro
 
     result = fake_result()
     protocol = dataclasses.replace(result.spec.protocol, success_rule=rule, stop_ends=rule != "arrival")
@@ -467,7 +467,7 @@ def test_a_paired_difference_is_episode_by_episode_and_refuses_other_runs_or_epi
     against the rule's checkpoint): each episode's value minus the same episode's, so a row whose every
     episode moves from failure to success differs by exactly +100 [100, 100] (higher), an unchanged one
     by 0 [0, 0] (no difference beyond the margin); a preset of other runs, or other episodes, is refused."""
-    from kgnavbench.table import to_paired_csv, to_paired_markdown
+    from kgnavbench.table_paired import to_paired_csv, to_paired_markdown
     from kgnavbench.table_statistics import paired_differences
 
     base = fake_result()

@@ -13,7 +13,7 @@ import pytest
 from test_table import episode  # (pytest puts tests/ on the path)
 
 from kgnavbench.cli import main
-from kgnavbench.table import ABLATION_CSV_FIELDS, write_table
+from kgnavbench.table_files import ABLATION_CSV_FIELDS, write_table
 from kgnavbench.table_spec import SPEC_FILE, Preset, load_spec
 from kgnavbench.table_statistics import RowResult, TableResult, cell_episodes
 
