@@ -186,7 +186,11 @@ def _kitchens(where: str, names: list) -> tuple[str, ...]:
 
 
 def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
-    """The spec from TOML text; every problem is a TableError naming the file and the field."""
+    """The spec from TOML text; every problem is a TableError naming the file and the field.
+
+    :param text: the spec's TOML
+    :param path: the file it was read from, named in every error
+    """
     path = Path(path)
     try:
         raw = tomllib.loads(text)
@@ -195,8 +199,28 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
     except RecursionError as e:  # arrays or tables nested thousands deep
         raise TableError(f"{path}: nested too deeply to be a table spec") from e
     _unknown(str(path), raw, {"protocol", "presets", "rows", "comparisons"})
-    where = f"{path}: protocol"
-    p = _field(str(path), raw, "protocol", dict)
+    protocol = _protocol(f"{path}: protocol", _field(str(path), raw, "protocol", dict))
+    presets = {}
+    for name, table in _field(str(path), raw, "presets", dict).items():
+        presets[name] = _preset(path, name, table, protocol)
+    if not presets:
+        raise TableError(f"{path}: presets has none")
+    methods = set(available())
+    listed = _field(str(path), raw, "rows", list)
+    rows = [_row(f"{path}: rows[{i}]", t, methods) for i, t in enumerate(listed)]
+    if not rows:
+        raise TableError(f"{path}: rows has none")
+    names = [r.name for r in rows]
+    if len(set(names)) != len(names):
+        raise TableError(f"{path}: rows: a row name is used twice")
+    for preset in presets.values():
+        _check_preset_rows(path, preset, names)
+    comparisons = _comparisons(path, _field(str(path), raw, "comparisons", list, [], required=False), names)
+    return TableSpec(path, protocol, presets, tuple(rows), comparisons)
+
+
+def _protocol(where: str, p: dict) -> Protocol:
+    """The spec's [protocol]: the evaluation's rule, Stop, caps, checkpoint rule and verdict margin."""
     _unknown(where, p, {"success_rule", "stop_ends", "seen_cap", "unseen_cap", "checkpoint", "margin"})
     protocol = Protocol(
         success_rule=_field(where, p, "success_rule", str),
@@ -220,149 +244,146 @@ def parse_spec(text: str, path: Path | str = "<spec>") -> TableSpec:
         )
     if protocol.checkpoint not in CHECKPOINT_RULES:
         raise TableError(f"{where}.checkpoint = {protocol.checkpoint!r}: choose one of {CHECKPOINT_RULES}")
+    return protocol
 
-    presets = {}
-    for name, t in _field(str(path), raw, "presets", dict).items():
-        where = f"{path}: presets.{name}"
-        if not PRESET_NAME.fullmatch(name):  # it names files (tables/table1-NAME.md) and claims
-            raise TableError(
-                f"{path}: preset name {name!r} must be letters, digits, '-' and '_' (at most 40), "
-                "starting with a letter or digit"
-            )
-        if not isinstance(t, dict):
-            raise TableError(f"{where} must be a table")
-        _unknown(
-            where,
-            t,
-            {
-                "description",
-                "frames",
-                "episodes",
-                "seeds",
-                "train_kitchens",
-                "eval_kitchens",
-                "set",
-                "rows",
-                "checkpoint",
-                "unseen_target_kitchens",
-                "score_rule",
-                "row_seeds",
-            },  # fmt: skip
-        )
-        preset = Preset(
-            name=name,
-            description=_field(where, t, "description", str, "", required=False),
-            frames=_field(where, t, "frames", int),
-            episodes=_field(where, t, "episodes", int),
-            seeds=_field(where, t, "seeds", int, 1, required=False),
-            train_kitchens=_kitchens(
-                f"{where}.train_kitchens", _field(where, t, "train_kitchens", list, [], False)
-            ),
-            eval_kitchens=_kitchens(
-                f"{where}.eval_kitchens", _field(where, t, "eval_kitchens", list, [], False)
-            ),
-            options=_options(f"{where}.set", _field(where, t, "set", dict, {}, required=False)),
-            rows=tuple(_field(where, t, "rows", list, [], required=False)),
-            checkpoint=_field(where, t, "checkpoint", str, "", required=False),
-            score_rule=_field(where, t, "score_rule", str, "", required=False),
-            row_seeds=_row_seeds(f"{where}.row_seeds", _field(where, t, "row_seeds", dict, {}, False)),
-            # in the kitchens' order: the same kitchens listed otherwise are the same evaluations
-            unseen_target_kitchens=tuple(
-                sorted(
-                    _kitchens(
-                        f"{where}.unseen_target_kitchens",
-                        _field(where, t, "unseen_target_kitchens", list, [], False),
-                    ),
-                    key=KITCHEN_NAMES.index,
-                )
-            ),
-        )
-        train_split = load_task_file()["splits"]["train"] if preset.unseen_target_kitchens else []
-        training = set(train_split) & set(preset.eval_kitchens or train_split)
-        elsewhere = [k for k in preset.unseen_target_kitchens if k not in training]
-        if elsewhere:
-            raise TableError(
-                f"{where}.unseen_target_kitchens: {', '.join(elsewhere)} "
-                f"{'is' if len(elsewhere) == 1 else 'are'} not a training kitchen that the preset evaluates"
-            )
-        if preset.checkpoint and preset.checkpoint not in CHECKPOINT_RULES:
-            raise TableError(f"{where}.checkpoint = {preset.checkpoint!r}: choose one of {CHECKPOINT_RULES}")
-        scorable = (protocol.success_rule, "visible") == (
-            "destination",
-            preset.score_rule,
-        ) and protocol.stop_ends
-        if preset.score_rule not in ("", protocol.success_rule) and not scorable:
-            raise TableError(
-                f"{where}.score_rule = {preset.score_rule!r}: the only other rule a table scores its "
-                "evaluations under is 'visible', on a protocol of 'destination' where Stop ends episodes"
-            )
-        if preset.frames < 1:
-            raise TableError(f"{where}.frames = {preset.frames} must be at least 1")
-        if not 1 <= preset.episodes <= EPISODES_PER_TARGET:
-            raise TableError(f"{where}.episodes = {preset.episodes} must be 1..{EPISODES_PER_TARGET}")
-        if not 1 <= preset.seeds <= 100:
-            raise TableError(f"{where}.seeds = {preset.seeds} must be 1..100")
-        presets[name] = preset
-    if not presets:
-        raise TableError(f"{path}: presets has none")
 
-    rows = []
-    methods = set(available())
-    for i, t in enumerate(_field(str(path), raw, "rows", list)):
-        where = f"{path}: rows[{i}]"
-        if not isinstance(t, dict):
-            raise TableError(f"{where} must be a table")
-        _unknown(where, t, {"name", "method", "options", "unseen_kitchens", "paper"})
-        method = _field(where, t, "method", str)
-        if method not in methods:
-            raise TableError(
-                f"{where}.method = {method!r} is not a plugin (available: {', '.join(sorted(methods))})"
-            )
-        paper = {}
-        for cell, pair in _field(where, t, "paper", dict, {}, required=False).items():
-            ok = cell in CELL_KEYS and isinstance(pair, list) and len(pair) == 2
-            if not ok or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pair):
-                raise TableError(
-                    f"{where}.paper.{cell!r} = {pair!r} must be CELL = [SPL, SR], a CELL one of Table I's "
-                    f"{', '.join(CELL_KEYS)}"
-                )
-            paper[cell] = (float(pair[0]), float(pair[1]))
-        rows.append(
-            Row(
-                name=_field(where, t, "name", str),
-                method=method,
-                options=_options(f"{where}.options", _field(where, t, "options", dict, {}, required=False)),
-                unseen_kitchens=_field(where, t, "unseen_kitchens", bool, True, required=False),
-                paper=paper,
-            )
+def _preset(path: Path, name: str, t, protocol: Protocol) -> Preset:
+    """One [presets.NAME] table, checked on its own (its rows against the spec's: `_check_preset_rows`)."""
+    where = f"{path}: presets.{name}"
+    if not PRESET_NAME.fullmatch(name):  # it names files (tables/table1-NAME.md) and claims
+        raise TableError(
+            f"{path}: preset name {name!r} must be letters, digits, '-' and '_' (at most 40), "
+            "starting with a letter or digit"
         )
-    if not rows:
-        raise TableError(f"{path}: rows has none")
-    names = [r.name for r in rows]
-    if len(set(names)) != len(names):
-        raise TableError(f"{path}: rows: a row name is used twice")
-    for preset in presets.values():
-        runs = preset.rows or names
-        fewer = [(n, k) for n, k in preset.row_seeds.items() if k <= preset.seeds]
-        if fewer:  # a row's extra seeds follow every job of the first `seeds`: it cannot have fewer
-            raise TableError(
-                f"{path}: presets.{preset.name}.row_seeds: {fewer[0][0]!r} = {fewer[0][1]} is not more than "
-                f"the preset's seeds = {preset.seeds}; row_seeds is for rows that need more"
+    if not isinstance(t, dict):
+        raise TableError(f"{where} must be a table")
+    _unknown(
+        where,
+        t,
+        {
+            "description",
+            "frames",
+            "episodes",
+            "seeds",
+            "train_kitchens",
+            "eval_kitchens",
+            "set",
+            "rows",
+            "checkpoint",
+            "unseen_target_kitchens",
+            "score_rule",
+            "row_seeds",
+        },  # fmt: skip
+    )
+    preset = Preset(
+        name=name,
+        description=_field(where, t, "description", str, "", required=False),
+        frames=_field(where, t, "frames", int),
+        episodes=_field(where, t, "episodes", int),
+        seeds=_field(where, t, "seeds", int, 1, required=False),
+        train_kitchens=_kitchens(
+            f"{where}.train_kitchens", _field(where, t, "train_kitchens", list, [], False)
+        ),
+        eval_kitchens=_kitchens(f"{where}.eval_kitchens", _field(where, t, "eval_kitchens", list, [], False)),
+        options=_options(f"{where}.set", _field(where, t, "set", dict, {}, required=False)),
+        rows=tuple(_field(where, t, "rows", list, [], required=False)),
+        checkpoint=_field(where, t, "checkpoint", str, "", required=False),
+        score_rule=_field(where, t, "score_rule", str, "", required=False),
+        row_seeds=_row_seeds(f"{where}.row_seeds", _field(where, t, "row_seeds", dict, {}, False)),
+        # in the kitchens' order: the same kitchens listed otherwise are the same evaluations
+        unseen_target_kitchens=tuple(
+            sorted(
+                _kitchens(
+                    f"{where}.unseen_target_kitchens",
+                    _field(where, t, "unseen_target_kitchens", list, [], False),
+                ),
+                key=KITCHEN_NAMES.index,
             )
-        elsewhere = [n for n in preset.row_seeds if n not in runs]
-        if elsewhere:
+        ),
+    )
+    _check_preset(where, preset, protocol)
+    return preset
+
+
+def _check_preset(where: str, preset: Preset, protocol: Protocol) -> None:
+    """A preset's values against each other and the protocol: its unseen-target kitchens trained and
+    evaluated, its checkpoint and score rules known, frames, episodes and seeds in range."""
+    train_split = load_task_file()["splits"]["train"] if preset.unseen_target_kitchens else []
+    training = set(train_split) & set(preset.eval_kitchens or train_split)
+    elsewhere = [k for k in preset.unseen_target_kitchens if k not in training]
+    if elsewhere:
+        raise TableError(
+            f"{where}.unseen_target_kitchens: {', '.join(elsewhere)} "
+            f"{'is' if len(elsewhere) == 1 else 'are'} not a training kitchen that the preset evaluates"
+        )
+    if preset.checkpoint and preset.checkpoint not in CHECKPOINT_RULES:
+        raise TableError(f"{where}.checkpoint = {preset.checkpoint!r}: choose one of {CHECKPOINT_RULES}")
+    scorable = (protocol.success_rule, "visible") == (
+        "destination",
+        preset.score_rule,
+    ) and protocol.stop_ends
+    if preset.score_rule not in ("", protocol.success_rule) and not scorable:
+        raise TableError(
+            f"{where}.score_rule = {preset.score_rule!r}: the only other rule a table scores its "
+            "evaluations under is 'visible', on a protocol of 'destination' where Stop ends episodes"
+        )
+    if preset.frames < 1:
+        raise TableError(f"{where}.frames = {preset.frames} must be at least 1")
+    if not 1 <= preset.episodes <= EPISODES_PER_TARGET:
+        raise TableError(f"{where}.episodes = {preset.episodes} must be 1..{EPISODES_PER_TARGET}")
+    if not 1 <= preset.seeds <= 100:
+        raise TableError(f"{where}.seeds = {preset.seeds} must be 1..100")
+
+
+def _row(where: str, t, methods: set[str]) -> Row:
+    """One [[rows]] table: its name, plugin, options and the paper's numbers."""
+    if not isinstance(t, dict):
+        raise TableError(f"{where} must be a table")
+    _unknown(where, t, {"name", "method", "options", "unseen_kitchens", "paper"})
+    method = _field(where, t, "method", str)
+    if method not in methods:
+        raise TableError(
+            f"{where}.method = {method!r} is not a plugin (available: {', '.join(sorted(methods))})"
+        )
+    paper = {}
+    for cell, pair in _field(where, t, "paper", dict, {}, required=False).items():
+        ok = cell in CELL_KEYS and isinstance(pair, list) and len(pair) == 2
+        if not ok or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pair):
             raise TableError(
-                f"{path}: presets.{preset.name}.row_seeds: {elsewhere[0]!r} is not a row of the preset "
-                f"(its rows: {'; '.join(runs)})"
+                f"{where}.paper.{cell!r} = {pair!r} must be CELL = [SPL, SR], a CELL one of Table I's "
+                f"{', '.join(CELL_KEYS)}"
             )
-        unknown = [n for n in preset.rows if n not in names]
-        if unknown or len(set(preset.rows)) != len(preset.rows):
-            raise TableError(
-                f"{path}: presets.{preset.name}.rows = {list(preset.rows)!r}: "
-                + (f"{unknown[0]!r} is not a row name" if unknown else "a row is named twice")
-            )
-    comparisons = _comparisons(path, _field(str(path), raw, "comparisons", list, [], required=False), names)
-    return TableSpec(path, protocol, presets, tuple(rows), comparisons)
+        paper[cell] = (float(pair[0]), float(pair[1]))
+    return Row(
+        name=_field(where, t, "name", str),
+        method=method,
+        options=_options(f"{where}.options", _field(where, t, "options", dict, {}, required=False)),
+        unseen_kitchens=_field(where, t, "unseen_kitchens", bool, True, required=False),
+        paper=paper,
+    )
+
+
+def _check_preset_rows(path: Path, preset: Preset, names: list[str]) -> None:
+    """A preset's `rows` and `row_seeds` name rows of the spec, each once, and extra seeds are extra."""
+    runs = preset.rows or names
+    fewer = [(n, k) for n, k in preset.row_seeds.items() if k <= preset.seeds]
+    if fewer:  # a row's extra seeds follow every job of the first `seeds`: it cannot have fewer
+        raise TableError(
+            f"{path}: presets.{preset.name}.row_seeds: {fewer[0][0]!r} = {fewer[0][1]} is not more than "
+            f"the preset's seeds = {preset.seeds}; row_seeds is for rows that need more"
+        )
+    elsewhere = [n for n in preset.row_seeds if n not in runs]
+    if elsewhere:
+        raise TableError(
+            f"{path}: presets.{preset.name}.row_seeds: {elsewhere[0]!r} is not a row of the preset "
+            f"(its rows: {'; '.join(runs)})"
+        )
+    unknown = [n for n in preset.rows if n not in names]
+    if unknown or len(set(preset.rows)) != len(preset.rows):
+        raise TableError(
+            f"{path}: presets.{preset.name}.rows = {list(preset.rows)!r}: "
+            + (f"{unknown[0]!r} is not a row name" if unknown else "a row is named twice")
+        )
 
 
 def _row_seeds(where: str, table: dict) -> dict[str, int]:
