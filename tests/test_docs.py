@@ -1,11 +1,14 @@
-"""The documentation: README.md stays a guide read in one sitting, and every repository path that
-README.md and docs/*.md name exists."""
+"""The documentation: README.md stays a guide read in one sitting, every repository path that
+README.md and docs/*.md name exists, every commit they name is in the history, they name nothing a
+reader of a clone cannot follow, and the numbers they repeat are computed from zoo/ and tables/."""
 
 from __future__ import annotations
 
 import json
 import re
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 README_MAX_LINES = 400
@@ -162,3 +165,70 @@ def test_the_readmes_cannot_tell_counts_are_the_committed_tables():
     cells, last = _cannot_tell("paper-last")
     rule = _cannot_tell("paper")[1]
     assert f"Final weights: {last} of {cells} SR cells *cannot tell* (rule: {rule})" in text
+
+
+def referencing_documents() -> list[Path]:
+    """The pages a reader follows references from: README.md, zoo/README.md and docs/*.md."""
+    return [*documents(), ROOT / "zoo" / "README.md"]
+
+
+# a commit as the docs name it: 7-40 hex digits with a digit and a letter, standing alone (a run's or
+# an evaluation's name, `method-0123456789`, and a 64-digit checksum are not commits)
+COMMIT = re.compile(r"(?<![\w./-])(?=[0-9a-f]*\d)(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}(?![\w-])")
+
+
+def test_every_commit_the_docs_name_is_in_the_history():
+    """A commit a page names resolves with `git rev-parse` (a reader can `git show` it)."""
+    import subprocess
+
+    if not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout: no history to resolve commits in")
+    named = {}
+    for doc in referencing_documents():
+        for commit in COMMIT.findall(doc.read_text(encoding="utf-8")):
+            named.setdefault(commit, []).append(str(doc.relative_to(ROOT)))
+    assert len(named) > 5, named  # the docs do name the pinned revisions
+    unknown = [
+        f"{commit} (in {', '.join(sorted(set(where)))})"
+        for commit, where in sorted(named.items())
+        if subprocess.run(
+            ["git", "rev-parse", "--quiet", "--verify", f"{commit}^{{commit}}"],
+            cwd=ROOT,
+            capture_output=True,
+        ).returncode
+    ]
+    assert not unknown, "commits the docs name that are not in the history:\n" + "\n".join(unknown)
+
+
+# what a reader of a clone cannot follow: a path on the machine that wrote a page (the cache's
+# ~/.cache/kgnavbench is every user's own and stays), an issue number, a session, an unnamed machine
+UNFOLLOWABLE = {
+    "a path outside the repository": (
+        re.compile(r"(?<![\w.])(?:/tmp\b|/root\b|/home/|~/(?!\.cache/kgnavbench))"),
+        "name the command or the repository file instead",
+    ),
+    "a numbered issue": (
+        re.compile(r"\b[Ii]ssues? #?\d+|(?<![\w&])#\d+\b"),
+        "say what was asked for; a clone has no issue tracker",
+    ),
+    "a session": (
+        re.compile(r"\b[Ss]essions?\b"),
+        "give the date, the commit or the machine",
+    ),
+    "an unnamed machine": (
+        re.compile(r"\b(?:development machines?|this machine(?! kind)|the machine this)\b", re.I),
+        "name it by what it is: docs/reproducibility.md#the-machines-behind-the-figures",
+    ),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(UNFOLLOWABLE))
+def test_the_docs_name_nothing_a_reader_cannot_follow(kind):
+    pattern, instead = UNFOLLOWABLE[kind]
+    found = [
+        f"{doc.relative_to(ROOT)}:{n}: {line.strip()[:120]}"
+        for doc in referencing_documents()
+        for n, line in enumerate(doc.read_text(encoding="utf-8").splitlines(), 1)
+        if pattern.search(line)
+    ]
+    assert not found, f"{kind} in the docs ({instead}):\n" + "\n".join(found)
