@@ -288,6 +288,47 @@ def shifted(views: np.ndarray, shift: int, rng: np.random.Generator) -> np.ndarr
     return np.stack([p[y : y + size, x : x + size] for p, y, x in zip(padded, dy, dx)])
 
 
+def pretraining_loss(encoder: Encoder, views: torch.Tensor, train, idx: np.ndarray) -> torch.Tensor:
+    """The pretraining loss of a batch: the visible types (BCE summed over the types, mean over the
+    batch: a view shows ~3 of 125 types, and a mean over types would drown those few positives next
+    to the auxiliary losses), with the camera pitch and the open flag at weight 0.25 each."""
+    t_logits, p_logits, o_logits = encoder.predict(encoder(views))
+    return (
+        F.binary_cross_entropy_with_logits(
+            t_logits, torch.from_numpy(train.types[idx]).float(), reduction="sum"
+        )
+        / len(idx)
+        + 0.25 * F.cross_entropy(p_logits, torch.from_numpy(train.pitch[idx]))
+        + 0.25 * F.binary_cross_entropy_with_logits(o_logits, torch.from_numpy(train.opened[idx]))
+    )
+
+
+def _train_epoch(
+    encoder, optimiser, schedule, train, order, batch_size, shift, shifts, images, train_start, name, log
+) -> tuple[float, int]:
+    """One epoch over the views of `order`, in batches (each sorted: sequential reads), each shifted
+    by up to `shift` pixels; a progress line every 15 s. Returns the summed loss and the images
+    trained on so far."""
+    encoder.train()
+    steps = len(order) // batch_size
+    running, last_print = 0.0, time.perf_counter()
+    for b in range(steps):
+        idx = np.sort(order[b * batch_size : (b + 1) * batch_size])
+        views = torch.from_numpy(shifted(train.views[idx], shift, shifts))
+        loss = pretraining_loss(encoder, views, train, idx)
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        schedule.step()
+        images += len(idx)
+        running += loss.item()
+        if time.perf_counter() - last_print > 15 or b == steps - 1:
+            last_print = time.perf_counter()
+            rate = images / (last_print - train_start)
+            log(f"  {name}  batch {b + 1}/{steps}  loss {running / (b + 1):.4f}  {rate:,.0f} images/s")
+    return running, images
+
+
 def pretrain_encoder(
     kitchens=None,
     epochs: int = 8,
@@ -342,35 +383,10 @@ def pretrain_encoder(
     for epoch in range(epochs):
         order = np.random.default_rng([seed, epoch]).permutation(len(train.views))[:n]
         shifts = np.random.default_rng([seed, epoch, 1])
-        encoder.train()
-        running, last_print = 0.0, time.perf_counter()
-        for b in range(steps_per_epoch):
-            idx = np.sort(order[b * batch_size : (b + 1) * batch_size])  # sorted: sequential reads
-            views = torch.from_numpy(shifted(train.views[idx], shift, shifts))
-            t_logits, p_logits, o_logits = encoder.predict(encoder(views))
-            loss = (
-                # summed over the types (mean over the batch): a view shows ~3 of 125 types, and a
-                # mean over types would drown those few positives next to the auxiliary losses
-                F.binary_cross_entropy_with_logits(
-                    t_logits, torch.from_numpy(train.types[idx]).float(), reduction="sum"
-                )
-                / len(idx)
-                + 0.25 * F.cross_entropy(p_logits, torch.from_numpy(train.pitch[idx]))
-                + 0.25 * F.binary_cross_entropy_with_logits(o_logits, torch.from_numpy(train.opened[idx]))
-            )
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            optimiser.step()
-            schedule.step()
-            images += len(idx)
-            running += loss.item()
-            if time.perf_counter() - last_print > 15 or b == steps_per_epoch - 1:
-                last_print = time.perf_counter()
-                rate = images / (last_print - train_start)
-                log(
-                    f"  epoch {epoch + 1}/{epochs}  batch {b + 1}/{steps_per_epoch}  "
-                    f"loss {running / (b + 1):.4f}  {rate:,.0f} images/s"
-                )
+        running, images = _train_epoch(
+            encoder, optimiser, schedule, train, order, batch_size, shift, shifts, images, train_start,
+            f"epoch {epoch + 1}/{epochs}", log,
+        )  # fmt: skip
         on_train, on_val = evaluate_encoder(encoder, train_check), evaluate_encoder(encoder, val_check)
         history.append(
             {

@@ -207,11 +207,46 @@ def run_jobs_on_ray(
     `node_ip`: this machine's address on the cluster, where Ray would guess another (a loopback one)."""
     try:
         import ray
-        from ray.exceptions import RayError, RayTaskError
     except ImportError as e:
         raise TableError("--ray needs Ray, an optional extra: pip install 'kgnavbench[ray]'") from e
     if not jobs:
         return []
+    head, cpus = _join_cluster(ray, jobs, address, node_ip)
+    watchdog = _watch_head(head, shlex.join(["kgnavbench", *sys.argv[1:]]))
+    runs_dir = Path(jobs[0].runs_dir)
+    attempts_dir = runs_dir / "ray" / f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    attempts_dir.mkdir(parents=True)
+    board = _Board(jobs, attempts_dir)
+    try:
+        task = ray.remote(_ray_task)
+        refs = {}
+        for n, job in enumerate(jobs):
+            job = dataclasses.replace(job, threads=job.threads or 1)
+            options = dict(num_cpus=job.threads, max_retries=RAY_RETRIES, retry_exceptions=False)
+            remote = task.options(name=board.title(n), **options)
+            refs[remote.remote(job, board.title(n), str(board.attempts_file(n)), os.getcwd())] = n
+        parallel = max(1, cpus // max(job.threads or 1 for job in jobs))
+        joined = f"{address} (head {head})" if address != head else address  # "auto": the one it joined
+        progress(f"== {len(jobs)} jobs on the Ray cluster at {joined} ({cpus} CPUs)")
+        _await_outcomes(ray, refs, board, parallel, progress)
+    finally:
+        watchdog.set()
+        ray.shutdown()
+        shutil.rmtree(attempts_dir, ignore_errors=True)
+        with contextlib.suppress(OSError):  # runs/ray, unless another driver keeps its attempts there
+            attempts_dir.parent.rmdir()
+    if board.failed:
+        names = "; ".join(f"{board.title(n)}: {why}" for n, why in sorted(board.failed.items()))
+        raise TableError(
+            f"{len(board.failed)} of {len(jobs)} jobs failed ({names}); the others are done: fix the cause "
+            "and run the same command again to resume"
+        )
+    return board.outcomes
+
+
+def _join_cluster(ray, jobs: list[Job], address: str, node_ip: str | None) -> tuple[str, int]:
+    """The driver joined to the cluster at `address`, checked before anything is scheduled (its port,
+    its CPUs for the jobs' threads, its nodes' software): the head's address and the cluster's CPUs."""
     _check_ray_port(address)
     env = {name: os.environ[name] for name in RAY_ENV if name in os.environ}
     try:
@@ -238,76 +273,62 @@ def run_jobs_on_ray(
     except BaseException:
         ray.shutdown()
         raise
-    watchdog = _watch_head(head, shlex.join(["kgnavbench", *sys.argv[1:]]))
-    runs_dir = Path(jobs[0].runs_dir)
-    attempts_dir = runs_dir / "ray" / f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
-    attempts_dir.mkdir(parents=True)
-    kinds = [trains(job.row) for job in jobs]
-    outcomes: list[JobOutcome | None] = [None] * len(jobs)
-    failed: dict[int, str] = {}
-    done: list[tuple[bool, float]] = []
+    return head, cpus
 
-    def title(n: int) -> str:
-        return jobs[n].title(n + 1, len(jobs))
 
-    def attempts_file(n: int) -> Path:
-        return (attempts_dir / f"job-{n + 1:03d}").resolve()
+class _Board:
+    """What the driver knows of the jobs while they run: each one's outcome or failure, the times of
+    those done (for the ETA), and the attempts file each task writes when it starts."""
 
-    def status(parallel: int) -> str:
-        counts = [_attempts(attempts_file(n)) for n in range(len(jobs))]  # each file read once
+    def __init__(self, jobs: list[Job], attempts_dir: Path):
+        self.jobs, self.attempts_dir = jobs, attempts_dir
+        self.kinds = [trains(job.row) for job in jobs]
+        self.outcomes: list[JobOutcome | None] = [None] * len(jobs)
+        self.failed: dict[int, str] = {}
+        self.done: list[tuple[bool, float]] = []
+
+    def title(self, n: int) -> str:
+        return self.jobs[n].title(n + 1, len(self.jobs))
+
+    def attempts_file(self, n: int) -> Path:
+        return (self.attempts_dir / f"job-{n + 1:03d}").resolve()
+
+    def status(self, parallel: int) -> str:
+        counts = [_attempts(self.attempts_file(n)) for n in range(len(self.jobs))]  # each file read once
         started = [n for n, count in enumerate(counts) if count]
         retried = [n for n, count in enumerate(counts) if count > 1]
-        ended = {n for n, o in enumerate(outcomes) if o is not None} | set(failed)
+        ended = {n for n, o in enumerate(self.outcomes) if o is not None} | set(self.failed)
         running = [n for n in started if n not in ended]
-        left = time_left(done, [k for n, k in enumerate(kinds) if n not in ended])
+        left = time_left(self.done, [k for n, k in enumerate(self.kinds) if n not in ended])
         eta = f", about {left / 60 / parallel:.0f} min left" if left is not None else ""
         return (
-            f"== ray: {len(running)} running, {len(ended) - len(failed)} done, {len(retried)} retried, "
-            f"{len(failed)} failed, {len(jobs) - len(ended) - len(running)} waiting{eta}"
+            f"== ray: {len(running)} running, {len(ended) - len(self.failed)} done, {len(retried)} retried, "
+            f"{len(self.failed)} failed, {len(self.jobs) - len(ended) - len(running)} waiting{eta}"
         )
 
-    try:
-        task = ray.remote(_ray_task)
-        refs = {}
-        for n, job in enumerate(jobs):
-            job = dataclasses.replace(job, threads=job.threads or 1)
-            options = dict(num_cpus=job.threads, max_retries=RAY_RETRIES, retry_exceptions=False)
-            attempts = str(attempts_file(n))
-            remote = task.options(name=title(n), **options)
-            refs[remote.remote(job, title(n), attempts, os.getcwd())] = n
-        parallel = max(1, cpus // max(job.threads or 1 for job in jobs))
-        joined = f"{address} (head {head})" if address != head else address  # "auto": the one it joined
-        progress(f"== {len(jobs)} jobs on the Ray cluster at {joined} ({cpus} CPUs)")
-        pending = list(refs)
-        while pending:
-            ready, pending = ray.wait(pending, num_returns=1, timeout=RAY_STATUS_EVERY)
-            for ref in ready:
-                n = refs[ref]
-                try:
-                    outcomes[n] = ray.get(ref)
-                except RayTaskError as e:  # the job's own error (its traceback went to the log above)
-                    cause = e.cause if e.cause is not None else e
-                    failed[n] = f"{type(cause).__name__}: {first_line(cause)}"
-                    progress(f"== failed {title(n)}: {failed[n]}")
-                    continue
-                except RayError as e:  # its worker or node died, more times than it is retried
-                    failed[n] = f"lost after {RAY_RETRIES} retries ({type(e).__name__}: {first_line(e)})"
-                    progress(f"== failed {title(n)}: {failed[n]}")
-                    continue
-                if not outcomes[n].reused:
-                    done.append((kinds[n], outcomes[n].seconds))
-                progress(f"== done {title(n)} in {outcomes[n].seconds / 60:.1f} min")
-            progress(status(parallel))
-    finally:
-        watchdog.set()
-        ray.shutdown()
-        shutil.rmtree(attempts_dir, ignore_errors=True)
-        with contextlib.suppress(OSError):  # runs/ray, unless another driver keeps its attempts there
-            attempts_dir.parent.rmdir()
-    if failed:
-        names = "; ".join(f"{title(n)}: {why}" for n, why in sorted(failed.items()))
-        raise TableError(
-            f"{len(failed)} of {len(jobs)} jobs failed ({names}); the others are done: fix the cause and "
-            "run the same command again to resume"
-        )
-    return outcomes
+
+def _await_outcomes(ray, refs: dict, board: _Board, parallel: int, progress) -> None:
+    """Each task's outcome onto the board as it ends (a job's own error, or a worker or node lost
+    more times than it is retried, is a failure), with a status line at least every RAY_STATUS_EVERY s."""
+    from ray.exceptions import RayError, RayTaskError
+
+    pending = list(refs)
+    while pending:
+        ready, pending = ray.wait(pending, num_returns=1, timeout=RAY_STATUS_EVERY)
+        for ref in ready:
+            n = refs[ref]
+            try:
+                board.outcomes[n] = ray.get(ref)
+            except RayTaskError as e:  # the job's own error (its traceback went to the log above)
+                cause = e.cause if e.cause is not None else e
+                board.failed[n] = f"{type(cause).__name__}: {first_line(cause)}"
+                progress(f"== failed {board.title(n)}: {board.failed[n]}")
+                continue
+            except RayError as e:  # its worker or node died, more times than it is retried
+                board.failed[n] = f"lost after {RAY_RETRIES} retries ({type(e).__name__}: {first_line(e)})"
+                progress(f"== failed {board.title(n)}: {board.failed[n]}")
+                continue
+            if not board.outcomes[n].reused:
+                board.done.append((board.kinds[n], board.outcomes[n].seconds))
+            progress(f"== done {board.title(n)} in {board.outcomes[n].seconds / 60:.1f} min")
+        progress(board.status(parallel))

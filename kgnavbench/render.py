@@ -171,26 +171,82 @@ def _expand(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return owner, offset
 
 
+@dataclass(frozen=True)
+class _Cameras:
+    """B pinhole cameras at the poses: position, forward and right vectors on the floor plane, pitch,
+    the focal length in pixels and the image size."""
+
+    origin: np.ndarray  # (B, 2)
+    fwd: np.ndarray  # (B, 2)
+    right: np.ndarray  # (B, 2)
+    pitch: np.ndarray  # (B,) radians
+    f: float
+    W: int
+    H: int
+
+    @property
+    def B(self) -> int:
+        return len(self.origin)
+
+
 def render_views(
     world: World, poses: list[Pose], width: int = 84, height: int | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Views (B, H, W, 3) uint8 RGB and instance buffers (B, H, W) int16 for the world's current state."""
+    """Views (B, H, W, 3) uint8 RGB and instance buffers (B, H, W) int16 for the world's current state.
+
+    A 2.5D ray caster in four passes over all poses at once: each wall and object edge into the image
+    columns it crosses (`_edge_columns`), each column's entry and exit depth per shape with the walls
+    set apart as background (`_shape_spans`), the pixel rows each span covers (`_span_pixels`), and the
+    background of floor, ceiling and the nearest wall (`_background`); then the z-buffer and shading.
+    """
     height = height or width
     geo = geometry(world)
-    B, W, H = len(poses), width, height
-    f = (W / 2) / math.tan(math.radians(FIELD_OF_VIEW) / 2)
-    origin = np.array([(p.x, p.z) for p in poses])
     fwd = np.array([heading_vector(p.heading) for p in poses], np.float64)
-    right = np.stack([fwd[:, 1], -fwd[:, 0]], 1)
-    pitch = np.radians([p.pitch for p in poses])
+    cam = _Cameras(
+        origin=np.array([(p.x, p.z) for p in poses]),
+        fwd=fwd,
+        right=np.stack([fwd[:, 1], -fwd[:, 0]], 1),
+        pitch=np.radians([p.pitch for p in poses]),
+        f=(width / 2) / math.tan(math.radians(FIELD_OF_VIEW) / 2),
+        W=width,
+        H=height,
+    )
+    B, W, H = cam.B, width, height
+    columns = _edge_columns(geo, cam)
+    t_in, t_out, face, hit_grp, hit_col, walls = _shape_spans(geo, cam, *columns)
+    hit, row, entry, pixel, inv = _span_pixels(geo, cam, t_in, t_out, hit_grp, hit_col)
+    back_t, cid, light = _background(geo, cam, inv, *walls)
+    hit_pose = hit_col // W
 
-    # --- 1. edges into camera coordinates (x to the right, z depth), clipped at the near plane
-    rel0 = geo.p0[None] - origin[:, None]  # (B, E, 2)
-    rel1 = geo.p1[None] - origin[:, None]
-    xa = np.einsum("bek,bk->be", rel0, right)
-    za = np.einsum("bek,bk->be", rel0, fwd)
-    xb = np.einsum("bek,bk->be", rel1, right)
-    zb = np.einsum("bek,bk->be", rel1, fwd)
+    zbuf = back_t.reshape(-1).copy()
+    np.minimum.at(zbuf, pixel, entry)
+    win = entry <= zbuf[pixel]
+    hit, row, entry, pixel = hit[win], row[win], entry[win], pixel[win]
+
+    # surfaces: the face hit first (shaded by its normal), else the top (lighter) or underside (darker)
+    front = entry <= t_in[hit] + 1e-6
+    top_or_bottom = np.where(inv[hit_pose[hit], row] > 0, np.float32(1.12), np.float32(0.62))
+    shade = np.where(front, geo.shade[face[hit]], top_or_bottom)
+    cid[pixel] = 3 + hit_grp[hit]
+    light[pixel] = shade * (0.55 + 0.45 * np.exp(-0.22 * entry))
+    table = np.concatenate([np.array([*FLOOR_COLOURS, CEILING_COLOUR], np.float32), geo.colour])
+    image = np.take(table, cid, axis=0) * light[:, None]
+    instance = np.take(np.r_[np.int16(-1), np.int16(-1), np.int16(-1), geo.instance.astype(np.int16)], cid)
+    image = np.minimum(image, 255).astype(np.uint8).reshape(B, W, H, 3).transpose(0, 2, 1, 3)
+    instance = instance.reshape(B, W, H).transpose(0, 2, 1)
+    return np.ascontiguousarray(image), np.ascontiguousarray(instance)
+
+
+def _edge_columns(geo, cam: _Cameras):
+    """Every edge into camera coordinates (x to the right, z depth), clipped at the near plane, and
+    its exact hit with each image column's ray it crosses: (pose, column, depth, edge, shape) per hit."""
+    W, f = cam.W, cam.f
+    rel0 = geo.p0[None] - cam.origin[:, None]  # (B, E, 2)
+    rel1 = geo.p1[None] - cam.origin[:, None]
+    xa = np.einsum("bek,bk->be", rel0, cam.right)
+    za = np.einsum("bek,bk->be", rel0, cam.fwd)
+    xb = np.einsum("bek,bk->be", rel1, cam.right)
+    zb = np.einsum("bek,bk->be", rel1, cam.fwd)
     keep = (za > NEAR) | (zb > NEAR)
     b_idx, e_idx = np.nonzero(keep)
     xa, za, xb, zb = xa[keep], za[keep], xb[keep], zb[keep]
@@ -216,11 +272,16 @@ def render_views(
     t = za[owner] + s * dz
     ok &= (s >= -1e-9) & (s <= 1 + 1e-9) & (t > NEAR)
     owner, col, t = owner[ok], col[ok], t[ok]
-    pose_of = b_idx[owner]
     edge = e_idx[owner]
-    grp = geo.group[edge]
+    return b_idx[owner], col, t, edge, geo.group[edge]
 
-    # --- 2. per (pose, column, shape): entry and exit depth
+
+def _shape_spans(geo, cam: _Cameras, pose_of, col, t, edge, grp):
+    """Per (pose, column, shape): its entry and exit depth and the face hit first. The walls enclose
+    the room and span floor to ceiling, so each column's nearest wall hit is part of the dense
+    background (with floor and ceiling) rather than a span to rasterise: returned apart, as each
+    column's wall depth, colour index and shade."""
+    B, W = cam.B, cam.W
     G = len(geo.y0)
     key = (pose_of * W + col) * G + grp
     order = np.argsort(key * 256.0 + np.minimum(t, 255.0))
@@ -232,8 +293,6 @@ def render_views(
     hit_grp = hit_key % G
     hit_col = hit_key // G  # pose * W + column
 
-    # The walls enclose the room and span floor to ceiling: each column's nearest wall hit is part of
-    # the dense background (with floor and ceiling) rather than a span to rasterise.
     wall = geo.is_wall[hit_grp]
     wall_t = np.full(B * W, np.inf)
     np.minimum.at(wall_t, hit_col[wall], t_in[wall])
@@ -243,13 +302,18 @@ def render_views(
     wall_cid[hit_col[wall_win]] = 3 + hit_grp[wall_win]
     wall_shade[hit_col[wall_win]] = geo.shade[face[wall_win]]
     keep = ~wall
-    t_in, t_out, face, hit_grp, hit_col = t_in[keep], t_out[keep], face[keep], hit_grp[keep], hit_col[keep]
+    return t_in[keep], t_out[keep], face[keep], hit_grp[keep], hit_col[keep], (wall_t, wall_cid, wall_shade)
+
+
+def _span_pixels(geo, cam: _Cameras, t_in, t_out, hit_grp, hit_col):
+    """The pixel rows each shape's span covers, exactly: (span, row, entry depth, pixel) per covered
+    pixel, and each pose's inverse ray slope per row (B, H)."""
+    f, W, H = cam.f, cam.W, cam.H
     hit_pose = hit_col // W
     y_lo, y_hi = geo.y0[hit_grp], geo.y1[hit_grp]
-
     # rows spanned by the slice's corners. Pitch is a y-shear of the image (as 2.5D ray casters do):
     # row = H/2 + f ((eye - y) / t - tan(pitch)), so straight edges stay straight and verticals vertical.
-    shift = np.tan(pitch)[hit_pose]
+    shift = np.tan(cam.pitch)[hit_pose]
     inv_in, inv_out = 1.0 / t_in, 1.0 / t_out
     corners = np.stack(
         [
@@ -266,9 +330,8 @@ def render_views(
     hit, offset = _expand(counts)
     row = r_lo[hit] + offset
 
-    # --- 3. exact coverage per (hit, row), then the z-buffer
-    # slope (eye - y) / t of the ray through each pixel row, per pose
-    tan_b = (np.arange(H) + 0.5 - H / 2)[None] / f + np.tan(pitch)[:, None]  # (B, H)
+    # exact coverage per (hit, row): slope (eye - y) / t of the ray through each pixel row, per pose
+    tan_b = (np.arange(H) + 0.5 - H / 2)[None] / f + np.tan(cam.pitch)[:, None]  # (B, H)
     tan_b = np.where(np.abs(tan_b) < 1e-9, 1e-9, tan_b)
     inv = 1.0 / tan_b
     inv_p = inv[hit_pose[hit], row]
@@ -278,8 +341,13 @@ def render_views(
     covered = entry <= np.minimum(t_out[hit], np.maximum(a, b)) + 1e-9
     hit, row, entry = hit[covered], row[covered], entry[covered]
     pixel = hit_col[hit] * H + row  # (pose * W + column) * H + row
+    return hit, row, entry, pixel, inv
 
-    # background per pixel: floor, ceiling or the column's wall, whichever is nearest
+
+def _background(geo, cam: _Cameras, inv, wall_t, wall_cid, wall_shade):
+    """Per pixel, floor (tiled), ceiling or the column's wall, whichever is nearest: its depth
+    (B, W, H), colour index and light (both flat, pixel = (pose * W + column) * H + row)."""
+    B, W, f, origin, fwd, right = cam.B, cam.W, cam.f, cam.origin, cam.fwd, cam.right
     floor_t = np.where(inv > 0, EYE_HEIGHT * inv, np.inf)  # (B, H)
     ceil_t = np.where(inv < 0, (EYE_HEIGHT - geo.room_height) * inv, np.inf)
     wall_tc = wall_t.reshape(B, W, 1)
@@ -295,24 +363,7 @@ def render_views(
     cid = np.where(is_wall, wall_cid.reshape(B, W, 1), cid).reshape(-1)
     light = np.where(is_wall, wall_shade.reshape(B, W, 1), np.float32(1.0))
     light = (light * (0.55 + 0.45 * np.exp(-0.22 * np.minimum(back_t, 50.0)))).astype(np.float32).reshape(-1)
-
-    zbuf = back_t.reshape(-1).copy()
-    np.minimum.at(zbuf, pixel, entry)
-    win = entry <= zbuf[pixel]
-    hit, row, entry, pixel = hit[win], row[win], entry[win], pixel[win]
-
-    # surfaces: the face hit first (shaded by its normal), else the top (lighter) or underside (darker)
-    front = entry <= t_in[hit] + 1e-6
-    top_or_bottom = np.where(inv[hit_pose[hit], row] > 0, np.float32(1.12), np.float32(0.62))
-    shade = np.where(front, geo.shade[face[hit]], top_or_bottom)
-    cid[pixel] = 3 + hit_grp[hit]
-    light[pixel] = shade * (0.55 + 0.45 * np.exp(-0.22 * entry))
-    table = np.concatenate([np.array([*FLOOR_COLOURS, CEILING_COLOUR], np.float32), geo.colour])
-    image = np.take(table, cid, axis=0) * light[:, None]
-    instance = np.take(np.r_[np.int16(-1), np.int16(-1), np.int16(-1), geo.instance.astype(np.int16)], cid)
-    image = np.minimum(image, 255).astype(np.uint8).reshape(B, W, H, 3).transpose(0, 2, 1, 3)
-    instance = instance.reshape(B, W, H).transpose(0, 2, 1)
-    return np.ascontiguousarray(image), np.ascontiguousarray(instance)
+    return back_t, cid, light
 
 
 def render_view(world: World, pose: Pose | None = None, size: int = 84) -> np.ndarray:
