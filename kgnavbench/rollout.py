@@ -79,7 +79,12 @@ class Rollout:
 
 
 class Actors:
-    """The training agents of one process (its rank's share under torchrun) in all its kitchens."""
+    """The training agents of one process (its rank's share under torchrun) in all its kitchens.
+
+    `collect` is a rollout, read top to bottom: `start_rollout`, then per step the model's answer to
+    `step_inputs` handed to `step` (act, step the agents, score, TSE, episode ends), the agents a time
+    limit cut valued (`add_cut_value`), and `end_rollout` with the bootstrap value. stacking.collect
+    runs the same steps for a row's seeds with their forward passes stacked."""
 
     def __init__(
         self,

@@ -54,7 +54,17 @@ def run_table(
     caption and file names say so). `workers` > 1 runs that many jobs at once in worker processes
     (torch on the preset's `threads`, else one thread, each); `ray_address`: every job as a task on
     that Ray cluster instead (`ray_node_ip`: this machine's address there). The table is the same
-    whichever runs the jobs."""
+    whichever runs the jobs.
+
+    :param spec: the table spec (`table_spec.load_spec`)
+    :param preset_name: one of the spec's presets
+    :param runs_dir: where training and evaluation runs live (`RUNS/train`, `RUNS/eval`)
+    :param progress: where the progress lines go
+    :param workers: jobs at once on this machine
+    :param device: where torch computes ("cpu" or "cuda")
+    :param sources: where runs come from (`jobs.Sources`: train, `--trained` folders, `--archive`)
+    :return: the assembled rows (`table_statistics.TableResult`), for `table_files.write_table`
+    """
     preset = spec.preset(preset_name)
     sources = sources or Sources()  # (by default: train, or find, or resume, in runs_dir)
     if workers < 1:

@@ -487,7 +487,14 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
     """Train (or resume) a run: A2C (rl=True) with IL and TSE as the options say, or IL alone. With
     `run.stacked` (`kgnavbench train --seeds`), those runs too, in this process: one update of every
     seed at once (`stacked_update`) while they are at the same frames, alone one by one where a resume
-    left one behind."""
+    left one behind.
+
+    :param run: the run directory and what names it (`runs.Run`: method, kitchens, frames, seed, device)
+    :param options: the training options, checked here (`runs.TrainOptions`)
+    :param model_config: the plugin's network
+    :param rl: False for IL alone (the `imitation` plugin)
+    :return: the run directory, holding best.pt, last.pt, metrics.csv and finished.json
+    """
     options.check()
     torch.set_num_threads(options.threads)
     ranks = distributed.start(torch.device(run.device))

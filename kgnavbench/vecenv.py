@@ -164,7 +164,16 @@ def build_space(
 ) -> StateSpace:
     """Load the kitchens' state graphs, features and targets ('seen': training targets; 'all'), and
     with `pixels` their views. TSE's novel objects (`tse_types`) are the pickupable types that are no
-    training target of the kitchen and, unless `unseen_subtargets`, no unseen target of it either."""
+    training target of the kitchen and, unless `unseen_subtargets`, no unseen target of it either.
+
+    :param kitchens: kitchen names (`FloorPlan1`, ...); the space's kitchen index is their order
+    :param targets: 'seen' (the training targets) or 'all' (unseen ones too)
+    :param success_rule: how an episode succeeds (`tasks.SUCCESS_RULES`): it decides each target's
+        destination states
+    :param pixels: also load every state's view (end-to-end training from pixels)
+    :param unseen_subtargets: let TSE take the kitchen's unseen targets as sub-targets
+    :return: one StateSpace over all the kitchens' states, targets and features
+    """
     types = {t: i for i, t in enumerate(object_types())}
     parts, rows, offsets, all_tasks = [], [], [0], []
     tse_types = np.zeros((len(kitchens), len(types)), bool)
