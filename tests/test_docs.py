@@ -232,3 +232,30 @@ def test_the_docs_name_nothing_a_reader_cannot_follow(kind):
         if pattern.search(line)
     ]
     assert not found, f"{kind} in the docs ({instead}):\n" + "\n".join(found)
+
+
+def test_every_pages_zoo_counts_and_core_hours_are_the_zoos():
+    """Wherever a manual page (not the journal, whose entries keep their day's numbers) counts the
+    paper preset's runs in zoo/ or their core-hours, the number is the zoo's own."""
+    runs, hours = _zoo_runs_by_preset()
+    counts = re.compile(
+        r"(\d+) runs (?:of 40M frames )?(?:of the paper preset|in `zoo/`)"
+        r"|zoo's (\d+) runs of the paper preset"
+    )
+    core_hours = re.compile(r"(\d+\.\d) core-hours (?:of training )?for (?:its |the )?(\d+) runs")
+    found, wrong = 0, []
+    for doc in referencing_documents():
+        if doc.name == "history.md":
+            continue
+        text = " ".join(doc.read_text(encoding="utf-8").split())
+        for match in counts.finditer(text):
+            found += 1
+            if int(match.group(1) or match.group(2)) != runs["paper"]:
+                wrong.append(f"{doc.relative_to(ROOT)}: '{match.group(0)}' (zoo/ holds {runs['paper']})")
+        for match in core_hours.finditer(text):
+            found += 1
+            if (match.group(1), int(match.group(2))) != (f"{hours['paper']:.1f}", runs["paper"]):
+                zoo = f"zoo/: {hours['paper']:.1f} for {runs['paper']}"
+                wrong.append(f"{doc.relative_to(ROOT)}: '{match.group(0)}' ({zoo})")
+    assert found >= 4, found  # the README, speed.md, status.md and table1.md state them
+    assert not wrong, "counts of the zoo's runs that are not the zoo's:\n" + "\n".join(wrong)
