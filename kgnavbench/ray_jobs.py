@@ -207,6 +207,7 @@ def run_jobs_on_ray(
     `node_ip`: this machine's address on the cluster, where Ray would guess another (a loopback one)."""
     try:
         import ray
+        import ray.exceptions  # (`_await_outcomes` reads them: a broken install fails here, before any task)
     except ImportError as e:
         raise TableError("--ray needs Ray, an optional extra: pip install 'kgnavbench[ray]'") from e
     if not jobs:

@@ -35,7 +35,7 @@ class PassInputs(NamedTuple):
     space: StateSpace
     states: np.ndarray  # (B,) the agents' states
     goals: np.ndarray  # (B,) their destinations' states
-    hidden: tuple | None  # the LSTM state (h, c) before this step; None at a run's start
+    hidden: tuple | None  # the LSTM state (h, c) before this step; None for FF A3C (no LSTM)
     scene: np.ndarray | None  # FF's training-kitchen index per agent
     history: np.ndarray | None  # FF's frames
 
@@ -137,7 +137,7 @@ class Actors:
         row's seeds, with their forward passes stacked."""
         act = partial(answer, model, graph=graph)
         with torch.no_grad():
-            rollout = self.start_rollout(model.device)
+            rollout = self.start_rollout()
             for t in range(self.opts.n_steps):
                 logits, value, hidden, _ = act(self.step_inputs())
                 cut = self.step(rollout, t, logits, value, hidden, reach, stats, per_target)
@@ -145,9 +145,9 @@ class Actors:
                     self.add_cut_value(rollout, t, cut, act(cut.inputs)[1])
             return self.end_rollout(rollout, act(self.step_inputs())[1])
 
-    def start_rollout(self, device: torch.device) -> Rollout:
+    def start_rollout(self) -> Rollout:
         """An empty rollout of n steps, from the agents' LSTM state now."""
-        n, b = self.opts.n_steps, self.nav.n
+        n, b, device = self.opts.n_steps, self.nav.n, self.device
         self.hidden = detached(self.hidden)
         steps = partial(np.zeros, (n, b))
         return Rollout(

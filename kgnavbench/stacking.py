@@ -208,7 +208,8 @@ def state_of(models: list[Model], hidden: list, rows: int) -> tuple[Tensor, Tens
 
 def forward(models: list[Model], w: Weights, readout, inputs: list[PassInputs]) -> list[tuple]:
     """The seeds' acting forward passes as one: each seed's answer (logits, value, hidden, extras)."""
-    spaces, states, goals, hidden = ([x[i] for x in inputs] for i in range(4))
+    spaces, states, goals = [x.space for x in inputs], [x.states for x in inputs], [x.goals for x in inputs]
+    hidden = [x.hidden for x in inputs]
     config = models[0].config
     joint = encode(config, w, readout, *stacked_inputs(models, spaces, states, goals))
     h, c = lstm_cell(w, lstm_input(w, joint), state_of(models, hidden, joint.shape[1]))
@@ -223,9 +224,12 @@ def collect(
     step's forward pass stacked; the agents a time limit cut are answered by their own seed's model
     (a few per rollout). `acting`: each seed's (reach, stats, per_target), as `Actors.collect` takes them."""
     stacked = partial(forward, models, w, readout)
+    steps = {a.opts.n_steps for a in actors}
+    if len(steps) != 1:  # the seeds step in lock-step: every rollout must be as long
+        raise RuntimeError(f"stacked seeds' rollouts of different lengths: {sorted(steps)} steps")
     with torch.no_grad():
-        rollouts = [a.start_rollout(m.device) for a, m in zip(actors, models)]
-        for t in range(actors[0].opts.n_steps):
+        rollouts = [a.start_rollout() for a in actors]
+        for t in range(steps.pop()):
             answers = stacked([a.step_inputs() for a in actors])
             for actor, model, graph, rollout, answered, args in zip(
                 actors, models, graphs, rollouts, answers, acting

@@ -63,6 +63,9 @@ def run_table(
     :param workers: jobs at once on this machine
     :param device: where torch computes ("cpu" or "cuda")
     :param sources: where runs come from (`jobs.Sources`: train, `--trained` folders, `--archive`)
+    :param rows_named: only these rows of the preset (a partial table)
+    :param ray_address: run every job as a task on the Ray cluster there instead of here
+    :param ray_node_ip: this machine's address on that cluster
     :return: the assembled rows (`table_statistics.TableResult`), for `table_files.write_table`
     """
     preset = spec.preset(preset_name)

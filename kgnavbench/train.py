@@ -493,7 +493,8 @@ def learn(run: Run, options: TrainOptions, model_config: models.ModelConfig, rl:
     :param options: the training options, checked here (`runs.TrainOptions`)
     :param model_config: the plugin's network
     :param rl: False for IL alone (the `imitation` plugin)
-    :return: the run directory, holding best.pt, last.pt, metrics.csv and finished.json
+    :return: the run directory, holding best.pt, last.pt, metrics.csv and finished.json (of stacked
+        seeds, the first seed's; the others' are `run.stacked`'s)
     """
     options.check()
     torch.set_num_threads(options.threads)

@@ -794,6 +794,38 @@ def test_a_truncated_episode_bootstraps_from_the_value_of_its_last_state(tmp_pat
     assert returns[t, i].item() == pytest.approx(float(ro.rewards[t, i]))
 
 
+def test_a_cut_agents_value_is_asked_of_the_state_it_reached_before_its_episode_restarts(
+    tmp_path, floorplan1_tasks, monkeypatch
+):
+    """`Actors.step` takes the cut agents' forward-pass inputs at the step that cut them, before their
+    next episode begins: the state each reached, its target's destination and the LSTM state the step
+    left (not the zeros a new episode starts from); the value is asked after the step, so inputs taken
+    later would be the new episodes'."""
+    trainer = train.Trainer(
+        tiny_run(tmp_path), tiny_options(n_steps=8), models.ModelConfig(lstm=32, hidden=32), True
+    )
+    actors = trainer.actors
+    actors.nav.cap[:] = actors.nav.steps + 4  # every running episode reaches the cap at step 4
+    asked = []
+    add_cut_value = actors.add_cut_value
+
+    def record(rollout, t, cut, value):
+        asked.append((t, cut, actors.nav.state.copy()))
+        add_cut_value(rollout, t, cut, value)
+
+    monkeypatch.setattr(actors, "add_cut_value", record)
+    ro = trainer.collect(None)
+    assert asked and all(t == 3 for t, _, _ in asked)
+    for t, cut, now in asked:
+        agents = cut.agents
+        assert np.array_equal(agents, np.flatnonzero(ro.truncated[t]))
+        assert np.array_equal(cut.inputs.states, ro.reached[t, agents])
+        assert not np.array_equal(now[agents], ro.reached[t, agents])  # restarted since: taken before
+        assert np.array_equal(cut.inputs.goals, actors.space.destination[ro.targets[t, agents]])
+        h, c = cut.inputs.hidden
+        assert h.shape[0] == len(agents) and h.abs().sum() > 0 and c.abs().sum() > 0
+
+
 def test_tse_windows_keep_the_lstm_state_where_the_relabelled_episode_begins():
     """A window carries the LSTM state the agent had before its first step, or before the step
     after its last Stop, and before that Stop."""
