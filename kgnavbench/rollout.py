@@ -200,29 +200,8 @@ class Actors:
         done = terminated | truncated
         stats["reward"] += float(r.sum())
         rollout.rewards[t], rollout.dones[t] = r, done
-        cut = None
         agents = np.flatnonzero(truncated & ~terminated)
-        if len(agents):
-            # a time limit is no end of the task: the return goes on past the cap, so the last
-            # step's reward gains gamma V(the state it reached), as Stable-Baselines3 does (the
-            # episode still ends here: nothing after it belongs to it). The inputs are taken now,
-            # before the episode restarts.
-            rollout.truncated[t, agents] = True
-            history = None
-            if self.ff:
-                history = np.concatenate([self.history[agents, 1:], nav.state[agents, None]], 1)
-            scene = rollout.scene
-            cut = Cut(
-                agents,
-                PassInputs(
-                    space,
-                    nav.state[agents],
-                    space.destination[nav.target[agents]],
-                    rows_of(hidden, agents),
-                    None if scene is None else scene[agents],
-                    history,
-                ),
-            )
+        cut = self._cut(rollout, t, agents, hidden) if len(agents) else None
         if opts.tse:
             candidate = (a != STOP) & (space.objects[nav.state] & self.subtarget_types[nav.target]).any(1)
             taken = probs.gather(1, action[:, None]).squeeze(1).cpu().numpy()
@@ -233,20 +212,47 @@ class Actors:
         self.tick += 1
         finished = np.flatnonzero(done)
         if len(finished):
-            ended = infos["final_info"]
-            stats["episodes"] += len(finished)
-            stats["successes"] += int(ended["success"][finished].sum())
-            np.add.at(per_target[0], nav.target[finished], 1.0)
-            np.add.at(per_target[1], nav.target[finished], ended["success"][finished])
-            stats["returns"] += float(ended["episode_return"][finished].sum())
-            if opts.tse:  # the ended episodes' sub-targets, for this update's relabelling
-                rollout.windows += self.tse.finish(finished, self.tick)
-            self.envs.reset(options={"reset_mask": done, "reach": reach})
+            self._end_episodes(rollout, finished, done, infos["final_info"], reach, stats, per_target)
         self.hidden = keep_rows(hidden, torch.from_numpy(~done).to(self.device).float())
         if self.ff:
             self.history = np.concatenate([self.history[:, 1:], nav.state[:, None]], 1)
             self.history[finished] = nav.state[finished, None]
         return cut
+
+    def _cut(self, rollout: Rollout, t: int, agents: np.ndarray, hidden) -> Cut:
+        """The agents a time limit cut at step t. A time limit is no end of the task: the return goes on
+        past the cap, so the last step's reward gains gamma V(the state it reached), as Stable-Baselines3
+        does (the episode still ends here: nothing after it belongs to it). The pass's inputs are taken
+        now, before the episode restarts."""
+        nav, space, scene = self.nav, self.space, rollout.scene
+        rollout.truncated[t, agents] = True
+        history = None
+        if self.ff:
+            history = np.concatenate([self.history[agents, 1:], nav.state[agents, None]], 1)
+        return Cut(
+            agents,
+            PassInputs(
+                space,
+                nav.state[agents],
+                space.destination[nav.target[agents]],
+                rows_of(hidden, agents),
+                None if scene is None else scene[agents],
+                history,
+            ),
+        )
+
+    def _end_episodes(self, rollout, finished, done, ended: dict, reach, stats: dict, per_target) -> None:
+        """The episodes that ended at this step counted (`stats`, `per_target`), their TSE windows kept
+        for this update's relabelling, and their agents' next episodes begun."""
+        nav = self.nav
+        stats["episodes"] += len(finished)
+        stats["successes"] += int(ended["success"][finished].sum())
+        np.add.at(per_target[0], nav.target[finished], 1.0)
+        np.add.at(per_target[1], nav.target[finished], ended["success"][finished])
+        stats["returns"] += float(ended["episode_return"][finished].sum())
+        if self.opts.tse:
+            rollout.windows += self.tse.finish(finished, self.tick)
+        self.envs.reset(options={"reset_mask": done, "reach": reach})
 
     def add_cut_value(self, rollout: Rollout, t: int, cut: Cut, value: torch.Tensor) -> None:
         """The cut agents' step-t rewards gain gamma V(the state each reached)."""

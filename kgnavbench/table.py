@@ -75,6 +75,21 @@ def run_table(
     runs_dir = Path(runs_dir)
     start = time.perf_counter()
     rows = only_rows(spec, preset, rows_named)
+    jobs = _preset_jobs(spec, preset, rows, runs_dir, device, sources, progress)
+    if ray_address is None:
+        outcomes = run_jobs(jobs, progress, workers)
+    else:
+        outcomes = run_jobs_on_ray(jobs, ray_address, progress, ray_node_ip)
+    if sources.trained is not None:
+        other_code_runs([outcome.train_run for outcome in outcomes if outcome.train_run], progress)
+    results = _row_results(rows, jobs, outcomes)  # (training only: the trained rows)
+    left_out = tuple(row.name for row in preset_rows(spec, preset) if row not in rows)
+    return TableResult(spec, preset, results, time.perf_counter() - start, git_revision(), left_out)
+
+
+def _preset_jobs(spec, preset, rows, runs_dir: Path, device: str, sources: Sources, progress) -> list[Job]:
+    """The preset's jobs of these rows (each row's seeds; with `train_only`, those that train),
+    announced with their cost where they train."""
     pairs = [(row, seed) for row, seed in table_jobs(spec, preset) if row in rows]
     if sources.train_only:  # only the jobs that train
         pairs = [(row, seed) for row, seed in pairs if trains(row)]
@@ -82,7 +97,7 @@ def run_table(
         announce_training(preset, [p for p in pairs if trains(p[0])], runs_dir, device, progress)
     # torch's threads in every job, training (the option) and evaluation alike: the spec's, so that a
     # job's numbers do not depend on how many run at once (threads change the sums' order)
-    jobs = [
+    return [
         Job(
             spec=spec,
             preset=preset,
@@ -95,12 +110,10 @@ def run_table(
         )  # fmt: skip
         for row, seed in pairs
     ]
-    if ray_address is None:
-        outcomes = run_jobs(jobs, progress, workers)
-    else:
-        outcomes = run_jobs_on_ray(jobs, ray_address, progress, ray_node_ip)
-    if sources.trained is not None:
-        other_code_runs([outcome.train_run for outcome in outcomes if outcome.train_run], progress)
+
+
+def _row_results(rows, jobs: list[Job], outcomes) -> list[RowResult]:
+    """The jobs' outcomes gathered per row, in the rows' order: each seed's episodes and runs."""
     per_row: dict[str, RowResult] = {}
     for job, outcome in zip(jobs, outcomes, strict=True):
         result = per_row.setdefault(job.row.name, RowResult(job.row, [], [], [], 0.0))
@@ -108,6 +121,4 @@ def run_table(
         result.train_runs.append(outcome.train_run)
         result.eval_runs.append(outcome.eval_run)
         result.seconds += outcome.seconds
-    results = [per_row[row.name] for row in rows if row.name in per_row]  # (training only: trained rows)
-    left_out = tuple(row.name for row in preset_rows(spec, preset) if row not in rows)
-    return TableResult(spec, preset, results, time.perf_counter() - start, git_revision(), left_out)
+    return [per_row[row.name] for row in rows if row.name in per_row]
