@@ -329,6 +329,24 @@ def _train_epoch(
     return running, images
 
 
+def _epoch_record(
+    encoder: Encoder, epoch: int, epochs: int, loss: float, train_check, val_check, log
+) -> dict:
+    """An epoch's line of the training record (its mAP on the check views of both splits), logged."""
+    on_train, on_val = evaluate_encoder(encoder, train_check), evaluate_encoder(encoder, val_check)
+    log(
+        f"epoch {epoch}/{epochs}: mAP {on_train['mAP']:.4f} on {on_train['views']} training views, "
+        f"{on_val['mAP']:.4f} on {on_val['views']} validation views (micro-F1 {on_val['micro_f1']:.4f})"
+    )
+    return {
+        "epoch": epoch,
+        "train_loss": round(loss, 4),
+        "train_mAP": on_train["mAP"],
+        "val_mAP": on_val["mAP"],
+        "val_micro_f1": on_val["micro_f1"],
+    }
+
+
 def pretrain_encoder(
     kitchens=None,
     epochs: int = 8,
@@ -387,20 +405,8 @@ def pretrain_encoder(
             encoder, optimiser, schedule, train, order, batch_size, shift, shifts, images, train_start,
             f"epoch {epoch + 1}/{epochs}", log,
         )  # fmt: skip
-        on_train, on_val = evaluate_encoder(encoder, train_check), evaluate_encoder(encoder, val_check)
-        history.append(
-            {
-                "epoch": epoch + 1,
-                "train_loss": round(running / max(1, steps_per_epoch), 4),
-                "train_mAP": on_train["mAP"],
-                "val_mAP": on_val["mAP"],
-                "val_micro_f1": on_val["micro_f1"],
-            }
-        )
-        log(
-            f"epoch {epoch + 1}/{epochs}: mAP {on_train['mAP']:.4f} on {on_train['views']} training views, "
-            f"{on_val['mAP']:.4f} on {on_val['views']} validation views (micro-F1 {on_val['micro_f1']:.4f})"
-        )
+        loss = running / max(1, steps_per_epoch)
+        history.append(_epoch_record(encoder, epoch + 1, epochs, loss, train_check, val_check, log))
     seconds = time.perf_counter() - train_start
     encoder.eval()
     final = evaluate_encoder(encoder, val)
