@@ -259,3 +259,23 @@ def test_every_pages_zoo_counts_and_core_hours_are_the_zoos():
                 wrong.append(f"{doc.relative_to(ROOT)}: '{match.group(0)}' ({zoo})")
     assert found >= 4, found  # the README, speed.md, status.md and table1.md state them
     assert not wrong, "counts of the zoo's runs that are not the zoo's:\n" + "\n".join(wrong)
+
+
+def test_the_trainer_reads_top_to_bottom():
+    """No function of the trainer's and the table's own files (train.py, rollout.py, table.py) is over
+    60 lines, none in the package over 100, and the rollout is a loop, not a generator."""
+    import ast
+
+    long = []
+    for path in sorted((ROOT / "kgnavbench").glob("*.py")):
+        limit = 60 if path.name in ("train.py", "rollout.py", "table.py") else 100
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > limit:
+                    long.append(f"kgnavbench/{path.name}: {node.name} has {lines} lines (at most {limit})")
+                if path.name == "rollout.py":
+                    assert not any(isinstance(n, (ast.Yield, ast.YieldFrom)) for n in ast.walk(node)), (
+                        node.name
+                    )
+    assert not long, "functions to split by job:\n" + "\n".join(long)
