@@ -1253,17 +1253,21 @@ def _train_weight_runs(
     return [run for i in range(len(jobs)) for run in got[str(i)]]
 
 
+# how check 2 names the runs in its messages, and how the samples file lists them
+WEIGHT_RUN_NAMES = [f"{m} {' '.join(o)}" for m, o in WEIGHT_RUNS]
+WEIGHT_RUN_LISTING = [[m, list(o)] for m, o in WEIGHT_RUNS]
+
+
 def _sampled_weights_differ(
-    got: list[dict], names: list[str] | None = None, file: Path = SAMPLES_FILE
+    got: list[dict], names=WEIGHT_RUN_NAMES, listing=WEIGHT_RUN_LISTING, file: Path = SAMPLES_FILE
 ) -> list[str]:
-    """Check 2: the runs whose sampled weights differ from those recorded in `file` beyond the
-    tolerance, each named with its largest difference (empty: all agree). `names`: the runs' names,
-    in `got`'s order (default WEIGHT_RUNS')."""
+    """Check 2: the runs whose sampled weights differ from those recorded in `file` (which lists its
+    runs as `listing`) beyond the tolerance, each named (`names`, in `got`'s order) with its largest
+    difference (empty: all agree)."""
     import base64
 
     recorded = json.loads(file.read_text())
-    names = names or [f"{m} {' '.join(o)}" for m, o in WEIGHT_RUNS]
-    assert recorded["runs"] == _recorded_run_list(names) and recorded["count"] == SAMPLED_WEIGHTS
+    assert recorded["runs"] == listing and recorded["count"] == SAMPLED_WEIGHTS
     differ = []
     for name, run, count, want in zip(names, got, recorded["weights"], recorded["samples"], strict=True):
         a = np.frombuffer(base64.b64decode(run["sample"]), "<f4")
@@ -1276,16 +1280,10 @@ def _sampled_weights_differ(
     return differ
 
 
-def _recorded_run_list(names: list[str]) -> list:
-    """How a samples file lists its runs: WEIGHT_RUNS' [method, options] pairs, or the names given."""
-    default = [f"{m} {' '.join(o)}" for m, o in WEIGHT_RUNS]
-    return [[m, list(o)] for m, o in WEIGHT_RUNS] if names == default else names
-
-
-def record_samples(recorded: list[dict], names: list[str], file: Path) -> None:
+def record_samples(recorded: list[dict], listing: list, file: Path) -> None:
     """Write check 2's reference for these runs (only when the training changes on purpose)."""
     samples = {
-        "runs": _recorded_run_list(names),
+        "runs": listing,
         "count": SAMPLED_WEIGHTS,
         "recorded_on": files.machine_key(files.machine()),
         "weights": [r["weights"] for r in recorded],
@@ -1445,4 +1443,4 @@ if __name__ == "__main__":  # python tests/test_train.py --record-weights [--sam
     print(f'    "{files.machine_key(files.machine())}": (')
     print("".join(f'        "{r["sha256"]}",\n' for r in recorded) + "    ),")
     if "--samples" in sys.argv:  # only when the training changes on purpose: check 2's reference
-        record_samples(recorded, [f"{m} {' '.join(o)}" for m, o in WEIGHT_RUNS], SAMPLES_FILE)
+        record_samples(recorded, WEIGHT_RUN_LISTING, SAMPLES_FILE)
