@@ -603,7 +603,9 @@ def test_state_features_are_cached_reused_and_rebuilt(floorplan5, monkeypatch, c
     mtime = path.stat().st_mtime_ns
     path.write_bytes(b"garbage")
     rebuilt = state_features("FloorPlan5")
-    assert np.array_equal(rebuilt, features)
+    # to the encoder's float16 tolerance, not bytes: on an Intel Xeon with AMX the encoder's output
+    # differed between the process that built the cache and this one (2026-12-07)
+    assert np.allclose(rebuilt.astype(np.float32), features.astype(np.float32), atol=1e-2, rtol=1e-2)
     assert "cannot be trusted" in capsys.readouterr().err
     # a file of the wrong shape too
     np.save(path, np.zeros((3, FEATURE_DIM), np.float16))
