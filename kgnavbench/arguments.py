@@ -430,6 +430,13 @@ def figures_arguments(sub) -> argparse.ArgumentParser:
         help="only this row of the preset, as named in the spec (repeatable): the others are neither "
         "trained, evaluated nor drawn, and the figures go to OUT/partial/, never over the whole preset's",
     )
+    p.add_argument(
+        "--curves-only",
+        action="store_true",
+        help="draw only training_curves_seeds.png (and its CSV) in OUT: validation and training-episode SR "
+        "over frames, every seed of each trained row (of --row's rows, if given) that --trained holds, "
+        "nothing trained or evaluated; a seed not there is left out with a note",
+    )
     device_option(p)
     p.add_argument("--out", type=Path, default=Path("docs/figures"), help="output folder (docs/figures)")
     return p

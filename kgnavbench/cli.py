@@ -19,6 +19,7 @@
     kgnavbench ship RUN_DIR [--zoo DIR] [--last]
     kgnavbench checkpoints [--preset paper] [--runs DIR] [--row NAME] [--figure PNG] [--matched]
     kgnavbench figures [--preset quick] [--runs DIR] [--out DIR] [--trained DIR] [--row NAME ...]
+                       [--curves-only]
     kgnavbench view FILE.rrd
     kgnavbench encoder pretrain [--epochs N] [--samples-per-epoch N] [--shift PX] [--seed S] [--out FILE]
     kgnavbench encoder features [NAME ...]
@@ -333,7 +334,10 @@ def cmd_figures(args: argparse.Namespace) -> int:
         from .jobs import only_rows
 
         only_rows(spec, preset, rows_named)
-    out = args.out / "partial" if rows_named else args.out  # never over the whole preset's figures
+    if args.curves_only and args.trained is None:
+        raise arguments.UsageError("--curves-only draws the runs of --trained DIR (zoo/): name it")
+    # never over the whole preset's figures (the seeds' curves alone are their own file)
+    out = args.out / "partial" if rows_named and not args.curves_only else args.out
     arguments.writable_folder(args.runs, "--runs")
     arguments.writable_folder(out, "--out")
     paths = figures_of_table(
@@ -345,8 +349,9 @@ def cmd_figures(args: argparse.Namespace) -> int:
         trained=args.trained,
         device=device,
         rows_named=rows_named,
+        curves_only=args.curves_only,
     )
-    print(f"wrote {', '.join(str(p) for p in paths)}")
+    print(f"wrote {', '.join(str(p) for p in paths)}" if paths else "wrote nothing")
     return 0
 
 

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import torch
 
+from .errors import KgnavbenchError
 from .files import first_line
 from .plots import (
     INK,
@@ -25,6 +26,7 @@ from .plots import (
     FigureError,
     bar_line_figure,
     curves_figure,
+    curves_image,
     draw_legend,
     draw_text,
     new_canvas,
@@ -449,15 +451,20 @@ def tsne_figure(name: str, train_dir, out_dir, seed: int = 0, file_name: str = "
     )
 
 
-def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, progress=print) -> list[Path]:
+def figures(
+    rows: list[tuple[str, str | None, str]],
+    out_dir,
+    seed: int = 0,
+    progress=print,
+    seed_runs: list[tuple[str, list[Path], bool]] = (),
+) -> list[Path]:
     """The paper's figures as PNGs in out_dir from rows (Table I row name, training run dir or None,
-    evaluation run dir):
+    evaluation run dir), and `seed_curves_figure`'s from `seed_runs`:
       * collisions_unseen.png  mean collisions per episode in unseen kitchens (bars) and the rate of
                                episodes whose last view shows the target (line), per row that has
                                unseen-kitchen episodes;
       * tsne_gcn.png           a t-SNE (seed) of the third GCN layer's node features of the last row
-                               trained with an accumulated knowledge graph, the object types that have
-                               a co-visibility edge, each labelled;
+                               with an accumulated knowledge graph, the types with an edge labelled;
       * attention_example.png  the last row trained with attention: one step of an episode in
                                FloorPlan1, its view, its target and its attention over object types
                                (`attention_step`); attention_episode.png every step of that
@@ -543,7 +550,121 @@ def figures(rows: list[tuple[str, str | None, str]], out_dir, seed: int = 0, pro
             )
         else:
             progress(f"figures: no training run logged {ylabel}; {file} skipped")
-    return written
+    return written + seed_curves_figure(list(seed_runs), out_dir, progress)
+
+
+# ------------------------------------------------------------------------------------------------
+# every seed's training curves
+
+SEED_CURVE_PANELS = (  # (metrics.csv column, panel title, y label, y values the axis includes, legend)
+    ("val_sr", "Validation SR", "SR (%) of the validation episodes", (0,), "upper left"),
+    (
+        "success_rate",
+        "Training-episode SR",
+        "SR (%) of the training episodes that ended",
+        (0, 100),
+        "lower right",
+    ),
+)
+SEED_CURVES_FILE = "training_curves_seeds"  # .png and .csv
+SEED_PANEL_SIZE = (620, 560)
+OWN_KITCHENS_NOTE = " (validated on its training kitchens)"  # FF A3C: its heads exist only there
+
+
+def seeds_mean(curves: list[tuple[list[float], list[float]]]) -> tuple[list[float], list[float]]:
+    """The mean over seeds of their k-th points (k up to the shortest seed's count), at the mean of
+    their frames: every run logs at the same schedule, a few hundred frames apart (an update ends
+    where its rollout does), so the k-th points are one moment of training."""
+    n = min(len(xs) for xs, _ in curves)
+    return (
+        [sum(xs[k] for xs, _ in curves) / len(curves) for k in range(n)],
+        [sum(ys[k] for _, ys in curves) / len(curves) for k in range(n)],
+    )
+
+
+def seed_curves_figure(rows: list[tuple[str, list[Path], bool]], out_dir, progress=print) -> list[Path]:
+    """training_curves_seeds.png: validation SR and training-episode SR over frames, every seed's run
+    of each row (name, its seeds' training run dirs, whether it validates in unseen kitchens) as a
+    thin line and the seeds' mean as a thick one, in the row's colour; training_curves_seeds.csv: the
+    points drawn, one line per run and logged row. A row without a run is left out with a note; with
+    none at all nothing is written."""
+    out_dir = Path(out_dir)
+    rows = [(name, [_run_dir(d, "training") for d in dirs], unseen) for name, dirs, unseen in rows if dirs]
+    if not rows:
+        progress(f"figures: no trained row has a run; {SEED_CURVES_FILE}.png skipped")
+        return []
+    metrics = {str(d): read_metrics(d / "metrics.csv") for _, dirs, _ in rows for d in dirs}
+    panels, table = [], []
+    for column, title, ylabel, y_include, corner in SEED_CURVE_PANELS:
+        series, colours, thin = {}, {}, set()
+        for k, (name, dirs, unseen) in enumerate(rows):
+            curves = []
+            for seed, d in enumerate(dirs):
+                xs, ys = metrics[str(d)].get(column, ([], []))
+                if xs:
+                    curves.append(([x / 1e6 for x in xs], list(ys)))
+                    table += [(name, seed, d.name, x, column, y) for x, y in zip(xs, ys)]
+            if not curves:
+                continue
+            note = OWN_KITCHENS_NOTE if column == "val_sr" and not unseen else ""
+            label = f"{name}, {len(curves)} seed{'s' if len(curves) > 1 else ''}{note}"
+            if len(curves) > 1:
+                for seed, curve in enumerate(curves):
+                    series[f"{label} #{seed}"] = curve
+                    colours[f"{label} #{seed}"] = k
+                    thin.add(f"{label} #{seed}")
+            series[label], colours[label] = seeds_mean(curves) if len(curves) > 1 else curves[0], k
+        if series:
+            panels.append(
+                curves_image(
+                    series,
+                    title,
+                    "frames (millions)",
+                    ylabel,
+                    SEED_PANEL_SIZE,
+                    x_include=(0,),
+                    y_include=y_include,
+                    colours=colours,
+                    thin=frozenset(thin),
+                    legend_corner=corner,
+                )
+            )
+        else:
+            progress(f"figures: no run logged {column}; its panel of {SEED_CURVES_FILE}.png is left out")
+    if not panels:
+        progress(f"figures: no run logged a success rate; {SEED_CURVES_FILE}.png skipped")
+        return []
+    csv_path = out_dir / f"{SEED_CURVES_FILE}.csv"
+    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    lines = ["row,seed,run,frames,column,value"] + [
+        f'"{name}",{seed},{run},{frames},{column},{value:g}'
+        for name, seed, run, frames, column, value in table
+    ]
+    csv_path.write_text("\n".join(lines) + "\n")
+    return [write_png(out_dir / f"{SEED_CURVES_FILE}.png", np.concatenate(panels, axis=1)), csv_path]
+
+
+def trained_seed_runs(spec, preset, rows, trained: Path, device: str, progress=print):
+    """(row name, its seeds' finished runs in `trained`, whether it validates in unseen kitchens) for
+    each row of `rows` that trains; a seed whose run is not there is left out with a note."""
+    from . import jobs  # lazily: the table stage imports the trainer
+
+    found = []
+    for row in rows:
+        if not jobs.trains(row):
+            continue
+        dirs = []
+        for seed in range(preset.seeds_of(row.name)):
+            try:
+                dirs.append(
+                    jobs.find_trained(
+                        preset, row, seed, jobs.row_options(preset, row), trained, device, progress
+                    )
+                )
+            except KgnavbenchError as e:
+                progress(f"figures: {first_line(e).split('; the closest')[0]}: drawn without it")
+        found.append((row.name, dirs, row.unseen_kitchens))
+    return found
 
 
 def figures_of_table(
@@ -555,13 +676,25 @@ def figures_of_table(
     trained=None,
     device: str = "cpu",
     rows_named: tuple[str, ...] = (),
+    curves_only: bool = False,
 ) -> list[Path]:
     """The figures of a Table I preset's runs (run_table: finished runs are only reloaded, missing
     ones are trained and evaluated first; with `trained`, a folder such as zoo/, the trained runs come
-    from there and none is trained), from each row's first seed; `rows_named`: those rows only."""
+    from there and none is trained), from each row's first seed, and every seed's training curves;
+    `rows_named`: those rows only. `curves_only`: only the seeds' training curves, from the runs
+    `trained` holds (a seed it lacks is left out with a note), nothing trained or evaluated."""
     from . import jobs, table, table_spec  # lazily: the table stage imports the trainer
 
     spec = table_spec.load_spec(spec_path) if spec_path else table_spec.load_spec()
+    if curves_only:
+        if trained is None:
+            raise FigureError(
+                "the training curves alone are drawn from the runs of a --trained folder (zoo/)"
+            )
+        chosen = spec.preset(preset)
+        rows = jobs.only_rows(spec, chosen, rows_named)
+        found = trained_seed_runs(spec, chosen, rows, Path(trained), device, progress)
+        return seed_curves_figure(found, out_dir, progress)
     if trained is None and device == "cpu" and not rows_named:
         result = table.run_table(spec, preset, runs_dir, progress=progress)
     else:  # a run trained on CUDA is another run (its device is in its config): the table's, as asked
@@ -570,4 +703,7 @@ def figures_of_table(
             spec, preset, runs_dir, progress=progress, device=device, sources=sources, rows_named=rows_named
         )
     rows = [(r.row.name, r.train_runs[0] or None, r.eval_runs[0]) for r in result.rows]
-    return figures(rows, out_dir, progress=progress)
+    seed_runs = [
+        (r.row.name, [Path(d) for d in r.train_runs if d], r.row.unseen_kitchens) for r in result.rows
+    ]
+    return figures(rows, out_dir, progress=progress, seed_runs=seed_runs)

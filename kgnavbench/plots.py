@@ -336,9 +336,17 @@ def curves_image(
     x_include: tuple[float, ...] = (),
     y_include: tuple[float, ...] = (),
     marks: dict[str, list[tuple[float, float]]] | None = None,
+    colours: dict[str, int] | None = None,
+    thin: frozenset[str] = frozenset(),
+    legend_corner: str = "upper left",
 ) -> np.ndarray:
-    """`curves_figure`'s image (BGR), for a figure of several panels."""
-    marks = marks or {}
+    """`curves_figure`'s image (BGR), for a figure of several panels. `colours`: a series' index into
+    PALETTE (default: its place in `series`); series named in `thin` are drawn 1 px wide and left out of
+    the legend (one seed's curve beside its row's mean). `legend_corner`: "upper left" or "lower right"
+    inside the plot, whichever the curves leave free."""
+    if legend_corner not in ("upper left", "lower right"):
+        raise FigureError(f"legend_corner must be 'upper left' or 'lower right', not {legend_corner!r}")
+    marks, colours = marks or {}, colours or {}
     clean = {}
     for name, (xs, ys) in series.items():
         xs, ys = list(map(float, xs)), list(map(float, ys))
@@ -364,7 +372,8 @@ def curves_image(
     ax.x_ticks(x_ticks, xlabel)
     entries = []
     for k, (name, (xs, ys)) in enumerate(clean.items()):
-        colour = PALETTE[k % len(PALETTE)]
+        colour = PALETTE[colours.get(name, k) % len(PALETTE)]
+        width_px = 1 if name in thin else 2
         runs, run = [], []
         for x, y in zip(xs, ys):
             if math.isfinite(x) and math.isfinite(y):
@@ -375,17 +384,22 @@ def curves_image(
         runs.append(run)
         for r in runs:
             if len(r) > 1:
-                cv2.polylines(img, [np.array(r, np.int32)], False, colour, 2, cv2.LINE_AA)
+                cv2.polylines(img, [np.array(r, np.int32)], False, colour, width_px, cv2.LINE_AA)
             elif r:
-                cv2.circle(img, r[0], 3, colour, -1, cv2.LINE_AA)
+                cv2.circle(img, r[0], 1 + width_px, colour, -1, cv2.LINE_AA)
         for x, y in marks.get(name, []):
             cx, cy = ax.px(x, y)
             cv2.rectangle(img, (cx - 5, cy - 5), (cx + 5, cy + 5), colour, 2, cv2.LINE_AA)
-        entries.append((name, colour, "line"))
+        if name not in thin:
+            entries.append((name, colour, "line"))
     ax.frame()
-    # the legend inside the plot's top-left corner, one entry per line
+    # the legend inside one corner of the plot, one entry per line
+    left, top = ax.left + 10, ax.top + 16
+    if legend_corner == "lower right":
+        text_width = max((cv2.getTextSize(n, FONT, 0.45, 1)[0][0] for n, _, _ in entries), default=0)
+        left, top = ax.right - 10 - 32 - text_width, ax.bottom - 16 - 20 * (len(entries) - 1)
     for k, (name, colour, _) in enumerate(entries):
-        y = ax.top + 16 + 20 * k
-        cv2.line(img, (ax.left + 10, y), (ax.left + 34, y), colour, 2, cv2.LINE_AA)
-        draw_text(img, name, (ax.left + 42, y), 0.45, valign="middle")
+        y = top + 20 * k
+        cv2.line(img, (left, y), (left + 24, y), colour, 2, cv2.LINE_AA)
+        draw_text(img, name, (left + 32, y), 0.45, valign="middle")
     return img

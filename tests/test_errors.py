@@ -710,3 +710,11 @@ def test_a_command_run_inside_another_checkout_is_refused_naming_both(tmp_path, 
     monkeypatch.chdir(other)
     assert main(["methods"]) == 0
     capsys.readouterr()
+
+
+def test_figures_curves_only_without_a_trained_folder_is_one_line(capsys, tmp_path):
+    """The seeds' curves are drawn from shipped runs, never trained for: --curves-only needs --trained."""
+    out, runs = tmp_path / "figures", tmp_path / "runs"
+    code, _, err = run(capsys, "figures", "--curves-only", "--runs", str(runs), "--out", str(out))
+    assert_one_line_error(code, err, "--curves-only", "--trained")
+    assert not out.exists() and not runs.exists()

@@ -319,19 +319,24 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks, monkeypatch):
         ("+KG+Attention", str(run), str(ours)),
     ]
     notes = []
-    paths = figures.figures(rows, tmp_path / "figures", progress=notes.append)
+    seed_runs = [("+KG+Attention", [run, run], True)]  # one run as two seeds: their mean is the run
+    paths = figures.figures(rows, tmp_path / "figures", progress=notes.append, seed_runs=seed_runs)
     names = [p.name for p in paths]
     assert names == [
         "collisions_unseen.png", "tsne_gcn.png", "attention_example.png", "attention_episode.png",
         "training_curves.png", "training_reward.png",
+        "training_curves_seeds.png", "training_curves_seeds.csv",
     ]  # fmt: skip
-    assert not notes
+    assert len(notes) == 1 and "no run logged success_rate" in notes[0]  # 200 frames: no episode ended
+    notes.clear()
+    paths = paths[:-1]  # the figures, each checked below
     step = figures.attention_step("kg_attention", run, row="+KG+Attention")
     steps = len(step["episode"][: figures.EPISODE_STEPS_SHOWN])
     sizes = {
         "tsne_gcn.png": figures.TSNE_SIZE,
         "attention_example.png": figures.ATTENTION_SIZE,
         "attention_episode.png": (1200, 160 + 20 * steps),  # one line per step
+        "training_curves_seeds.png": figures.SEED_PANEL_SIZE,  # the validation panel alone
     }
     for p in paths:
         assert _is_figure(p, sizes.get(p.name, plots.FIGURE_SIZE)), p
@@ -372,7 +377,8 @@ def test_paper_figures_from_runs(tmp_path, floorplan1_tasks, monkeypatch):
     notes.clear()
     paths = figures.figures(rows[:2], tmp_path / "fewer", progress=notes.append)
     assert [p.name for p in paths] == ["collisions_unseen.png"]
-    assert len(notes) == 4 and "tsne_gcn.png skipped" in notes[0] and "attention" in notes[1]
+    assert len(notes) == 5 and "tsne_gcn.png skipped" in notes[0] and "attention" in notes[1]
+    assert "training_curves_seeds.png skipped" in notes[4]  # no row has its seeds' runs
 
     with pytest.raises(FigureError, match="no such evaluation run directory"):
         figures.figures([("LSTM A3C", None, str(tmp_path / "missing"))], tmp_path / "x")
@@ -417,7 +423,7 @@ def test_figures_of_table_takes_each_rows_first_seed(tmp_path, monkeypatch):
     paths = figures.figures_of_table("smoke", tmp_path / "runs", tmp_path / "figs", progress=notes.append)
     assert [p.name for p in paths] == ["collisions_unseen.png"]
     assert calls == [(spec, "smoke", tmp_path / "runs", notes.append)]
-    assert len(notes) == 4  # no training runs: the t-SNE, the attention and both curves are skipped
+    assert len(notes) == 5  # no training runs: the t-SNE, the attention and the three curves are skipped
 
     # --trained: the runs come from that folder (table.Sources), never trained
     taken = []
@@ -525,3 +531,76 @@ def test_a_recording_stopped_by_sigterm_leaves_no_partial_file(tmp_path, floorpl
     assert child.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err
     assert not list(tmp_path.glob("*partial*")) and not (tmp_path / "walk.mp4").exists()
+
+
+def _metrics(run_dir, lines):
+    """A training run folder holding only a metrics.csv of (frames, val_sr, success_rate) lines."""
+    run_dir.mkdir(parents=True)
+    text = "frames,val_sr,success_rate\n" + "".join(
+        f"{f},{'' if v is None else v},{'' if t is None else t}\n" for f, v, t in lines
+    )
+    (run_dir / "metrics.csv").write_text(text)
+    return run_dir
+
+
+def test_every_seeds_training_curves_and_their_mean(tmp_path, monkeypatch):
+    """training_curves_seeds.png: each seed a thin line, the seeds' mean at their k-th points a thick
+    one, in the row's colour; FF A3C's validation is named for its own kitchens; the CSV holds every
+    point drawn; a row without runs is left out, and no run at all writes nothing."""
+    a = _metrics(tmp_path / "a", [(1_000_100, None, 10.0), (2_500_300, 4.0, 20.0), (5_000_300, 8.0, 30.0)])
+    b = _metrics(tmp_path / "b", [(1_000_500, None, 30.0), (2_500_700, 6.0, 40.0)])
+    ff = _metrics(tmp_path / "ff", [(1_000_000, None, 5.0), (2_500_000, 1.0, 6.0)])
+    assert figures.seeds_mean([([1.0, 2.0, 3.0], [4.0, 8.0, 9.0]), ([3.0, 4.0], [6.0, 10.0])]) == (
+        [2.0, 3.0],
+        [5.0, 9.0],
+    )
+    notes = []
+    rows = [("LSTM A3C", [a, b], True), ("FF A3C", [ff], False), ("+KG", [], True)]
+    png, csv_path = figures.seed_curves_figure(rows, tmp_path / "out", notes.append)
+    assert png.name == "training_curves_seeds.png" and not notes
+    width, height = figures.SEED_PANEL_SIZE
+    assert _is_figure(png, (2 * width, height))
+    lines = csv_path.read_text().splitlines()
+    assert lines[0] == "row,seed,run,frames,column,value"
+    assert '"LSTM A3C",1,b,2500700,val_sr,6' in lines and '"FF A3C",0,ff,1000000,success_rate,5' in lines
+    assert len(lines) == 1 + (2 + 1 + 1) + (3 + 2 + 2)  # val_sr points, then success_rate points
+    # the legends: one entry per row with its seed count; the seeds' own lines are unlabelled
+    drawn, real = [], figures.curves_image
+    monkeypatch.setattr(
+        figures, "curves_image", lambda series, *a, **kw: drawn.append((series, kw)) or real(series, *a, **kw)
+    )
+    figures.seed_curves_figure(rows, tmp_path / "again", notes.append)
+    validation, kw = drawn[0]
+    assert list(validation) == [
+        "LSTM A3C, 2 seeds #0", "LSTM A3C, 2 seeds #1", "LSTM A3C, 2 seeds",
+        "FF A3C, 1 seed" + figures.OWN_KITCHENS_NOTE,
+    ]  # fmt: skip
+    xs, ys = validation["LSTM A3C, 2 seeds"]  # the mean up to the shorter seed, in millions of frames
+    assert xs == pytest.approx([2.5005]) and ys == [5.0]
+    assert kw["thin"] == {"LSTM A3C, 2 seeds #0", "LSTM A3C, 2 seeds #1"}
+    assert "FF A3C, 1 seed" in drawn[1][0]  # its training episodes are the other rows' measure
+    assert figures.seed_curves_figure([("+KG", [], True)], tmp_path / "none", notes.append) == []
+    assert "skipped" in notes[-1] and not (tmp_path / "none").exists()
+    with pytest.raises(FigureError, match="no such training run directory"):
+        figures.seed_curves_figure([("LSTM A3C", [tmp_path / "gone"], True)], tmp_path / "x")
+
+
+def test_the_curves_alone_come_from_the_zoos_runs_without_training(tmp_path):
+    """`figures --curves-only --trained zoo`: the preset's runs found in zoo/ by their configs (as
+    `table --trained` finds them), each seed's curve drawn, nothing trained or evaluated."""
+    notes = []
+    paths = figures.figures_of_table(
+        "paper-protocol",
+        tmp_path / "runs",
+        tmp_path / "out",
+        progress=notes.append,
+        trained=Path("zoo"),
+        rows_named=("LSTM A3C",),
+        curves_only=True,
+    )
+    assert [p.name for p in paths] == ["training_curves_seeds.png", "training_curves_seeds.csv"]
+    runs = {line.split(",")[2] for line in paths[1].read_text().splitlines()[1:]}
+    assert runs == {"lstm_a3c-60ac5e8459", "lstm_a3c-4a4f223d5d", "lstm_a3c-6b53621d74"}
+    assert not (tmp_path / "runs").exists()
+    with pytest.raises(FigureError, match="--trained"):
+        figures.figures_of_table("paper-protocol", tmp_path / "runs", tmp_path / "o", curves_only=True)
