@@ -644,7 +644,7 @@ def seed_curves_figure(rows: list[tuple[str, list[Path], bool]], out_dir, progre
     return [write_png(out_dir / f"{SEED_CURVES_FILE}.png", np.concatenate(panels, axis=1)), csv_path]
 
 
-def trained_seed_runs(spec, preset, rows, trained: Path, device: str, progress=print):
+def trained_seed_runs(preset, rows, trained: Path, device: str, progress=print):
     """(row name, its seeds' finished runs in `trained`, whether it validates in unseen kitchens) for
     each row of `rows` that trains; a seed whose run is not there is left out with a note."""
     from . import jobs  # lazily: the table stage imports the trainer
@@ -693,7 +693,7 @@ def figures_of_table(
             )
         chosen = spec.preset(preset)
         rows = jobs.only_rows(spec, chosen, rows_named)
-        found = trained_seed_runs(spec, chosen, rows, Path(trained), device, progress)
+        found = trained_seed_runs(chosen, rows, Path(trained), device, progress)
         return seed_curves_figure(found, out_dir, progress)
     if trained is None and device == "cpu" and not rows_named:
         result = table.run_table(spec, preset, runs_dir, progress=progress)
