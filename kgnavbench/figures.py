@@ -9,6 +9,7 @@ unreadable run, too few points) is a FigureError naming it.
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from pathlib import Path
@@ -636,11 +637,13 @@ def seed_curves_figure(rows: list[tuple[str, list[Path], bool]], out_dir, progre
         return []
     csv_path = out_dir / f"{SEED_CURVES_FILE}.csv"
     csv_path.parent.mkdir(parents=True, exist_ok=True)
-    lines = ["row,seed,run,frames,column,value"] + [
-        f'"{name}",{seed},{run},{frames},{column},{value:g}'
-        for name, seed, run, frames, column, value in table
-    ]
-    csv_path.write_text("\n".join(lines) + "\n")
+    with open(csv_path, "w", newline="") as f:  # csv quotes a row name holding a comma or a quote
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(["row", "seed", "run", "frames", "column", "value"])
+        writer.writerows(
+            (name, seed, run, frames, column, f"{value:g}")
+            for name, seed, run, frames, column, value in table
+        )
     return [write_png(out_dir / f"{SEED_CURVES_FILE}.png", np.concatenate(panels, axis=1)), csv_path]
 
 

@@ -1,6 +1,7 @@
 """The record stage: episodes and training curves written to .rrd and read back with rerun's own reader,
 the viewer command, exact t-SNE, and the OpenCV figures."""
 
+import csv
 import json
 import re
 import subprocess
@@ -555,14 +556,17 @@ def test_every_seeds_training_curves_and_their_mean(tmp_path, monkeypatch):
         [5.0, 9.0],
     )
     notes = []
-    rows = [("LSTM A3C", [a, b], True), ("FF A3C", [ff], False), ("+KG", [], True)]
+    quoted = 'FF A3C, "own" kitchens'  # a name with a comma and quotes reads back whole
+    rows = [("LSTM A3C", [a, b], True), (quoted, [ff], False), ("+KG", [], True)]
     png, csv_path = figures.seed_curves_figure(rows, tmp_path / "out", notes.append)
     assert png.name == "training_curves_seeds.png" and not notes
     width, height = figures.SEED_PANEL_SIZE
     assert _is_figure(png, (2 * width, height))
-    lines = csv_path.read_text().splitlines()
-    assert lines[0] == "row,seed,run,frames,column,value"
-    assert '"LSTM A3C",1,b,2500700,val_sr,6' in lines and '"FF A3C",0,ff,1000000,success_rate,5' in lines
+    with open(csv_path, newline="") as f:
+        lines = list(csv.reader(f))
+    assert lines[0] == ["row", "seed", "run", "frames", "column", "value"]
+    assert ["LSTM A3C", "1", "b", "2500700", "val_sr", "6"] in lines
+    assert [quoted, "0", "ff", "1000000", "success_rate", "5"] in lines
     assert len(lines) == 1 + (2 + 1 + 1) + (3 + 2 + 2)  # val_sr points, then success_rate points
     # the legends: one entry per row with its seed count; the seeds' own lines are unlabelled
     drawn, real = [], figures.curves_image
@@ -573,12 +577,12 @@ def test_every_seeds_training_curves_and_their_mean(tmp_path, monkeypatch):
     validation, kw = drawn[0]
     assert list(validation) == [
         "LSTM A3C, 2 seeds #0", "LSTM A3C, 2 seeds #1", "LSTM A3C, 2 seeds",
-        "FF A3C, 1 seed" + figures.OWN_KITCHENS_NOTE,
+        f"{quoted}, 1 seed" + figures.OWN_KITCHENS_NOTE,
     ]  # fmt: skip
     xs, ys = validation["LSTM A3C, 2 seeds"]  # the mean up to the shorter seed, in millions of frames
     assert xs == pytest.approx([2.5005]) and ys == [5.0]
     assert kw["thin"] == {"LSTM A3C, 2 seeds #0", "LSTM A3C, 2 seeds #1"}
-    assert "FF A3C, 1 seed" in drawn[1][0]  # its training episodes are the other rows' measure
+    assert f"{quoted}, 1 seed" in drawn[1][0]  # its training episodes are the other rows' measure
     assert figures.seed_curves_figure([("+KG", [], True)], tmp_path / "none", notes.append) == []
     assert "skipped" in notes[-1] and not (tmp_path / "none").exists()
     with pytest.raises(FigureError, match="no such training run directory"):
@@ -599,7 +603,8 @@ def test_the_curves_alone_come_from_the_zoos_runs_without_training(tmp_path):
         curves_only=True,
     )
     assert [p.name for p in paths] == ["training_curves_seeds.png", "training_curves_seeds.csv"]
-    runs = {line.split(",")[2] for line in paths[1].read_text().splitlines()[1:]}
+    with open(paths[1], newline="") as f:
+        runs = {line[2] for line in list(csv.reader(f))[1:]}
     assert runs == {"lstm_a3c-60ac5e8459", "lstm_a3c-4a4f223d5d", "lstm_a3c-6b53621d74"}
     assert not (tmp_path / "runs").exists()
     with pytest.raises(FigureError, match="--trained"):
