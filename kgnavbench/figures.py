@@ -10,6 +10,7 @@ unreadable run, too few points) is a FigureError naming it.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from pathlib import Path
@@ -19,7 +20,7 @@ import numpy as np
 import torch
 
 from .errors import KgnavbenchError
-from .files import first_line
+from .files import atomic_write, first_line
 from .plots import (
     INK,
     PALETTE,
@@ -636,14 +637,13 @@ def seed_curves_figure(rows: list[tuple[str, list[Path], bool]], out_dir, progre
         progress(f"figures: no run logged a success rate; {SEED_CURVES_FILE}.png skipped")
         return []
     csv_path = out_dir / f"{SEED_CURVES_FILE}.csv"
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(csv_path, "w", newline="") as f:  # csv quotes a row name holding a comma or a quote
-        writer = csv.writer(f, lineterminator="\n")
-        writer.writerow(["row", "seed", "run", "frames", "column", "value"])
-        writer.writerows(
-            (name, seed, run, frames, column, f"{value:g}")
-            for name, seed, run, frames, column, value in table
-        )
+    text = io.StringIO()  # csv quotes a row name holding a comma or a quote
+    writer = csv.writer(text, lineterminator="\n")
+    writer.writerow(["row", "seed", "run", "frames", "column", "value"])
+    writer.writerows(
+        (name, seed, run, frames, column, f"{value:g}") for name, seed, run, frames, column, value in table
+    )
+    atomic_write(csv_path, text.getvalue())
     return [write_png(out_dir / f"{SEED_CURVES_FILE}.png", np.concatenate(panels, axis=1)), csv_path]
 
 
